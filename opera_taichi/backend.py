@@ -1,0 +1,39 @@
+"""One place that starts Taichi, so every module agrees on the backend."""
+from __future__ import annotations
+
+import taichi as ti
+
+from .errors import UserError
+
+_started: str | None = None
+
+
+def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> str:
+    """Start Taichi once per process on `arch` (cpu, cuda or auto). Returns the backend in use.
+
+    Taichi can only run on one backend per process; a second call with a different arch re-initialises it
+    (all fields are lost), so the simulation calls this once, before it allocates any field.
+    """
+    global _started
+    if arch not in ("cpu", "cuda", "auto"):
+        raise UserError(f"--arch: expected cpu, cuda or auto, got {arch!r}")
+    kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0)
+    if default_fp is not None:
+        kwargs["default_fp"] = default_fp
+    if arch == "cpu":
+        ti.init(arch=ti.cpu, **kwargs)
+    elif arch == "cuda":
+        try:
+            ti.init(arch=ti.cuda, **kwargs)
+        except Exception as exc:  # Taichi raises a bare RuntimeError when no CUDA device is present
+            raise UserError(f"--arch cuda: no usable CUDA device ({exc})") from None
+        if ti.lang.impl.current_cfg().arch != ti.cuda:
+            raise UserError("--arch cuda: no usable CUDA device on this machine (use cpu or auto)")
+    else:
+        ti.init(arch=ti.gpu, **kwargs)  # falls back to CPU when no GPU is found
+    _started = str(ti.lang.impl.current_cfg().arch).split(".")[-1]
+    return _started
+
+
+def current_arch() -> str | None:
+    return _started

@@ -1,0 +1,163 @@
+"""Motion scripts: where the machine's joints should be at time t (the Control of each step).
+
+Three kinds, all ending as a smooth joint-space profile:
+- joint waypoints (times and targets, PCHIP-interpolated so there is no overshoot between waypoints),
+- a CSV replay of a recorded joint-angle log (linear between samples, as a real log is dense),
+- a cutting-edge path in the machine frame, sampled along straight Cartesian segments and solved by IK.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+
+from .errors import UserError
+
+# Cartesian paths are solved by IK at this rate, then interpolated in joint space.
+TIP_PATH_SAMPLE_HZ = 20.0
+
+
+@dataclass
+class Control:
+    """Commands for one step: joint position targets (rad) and, for a machine on tracks, track speeds (m/s)."""
+
+    q_cmd: dict[str, float] = field(default_factory=dict)
+    track_speeds: tuple[float, float] = (0.0, 0.0)
+
+
+class JointProfile:
+    """Per-joint time profile; holds the first value before the start and the last after the end."""
+
+    def __init__(self, times: dict[str, np.ndarray], values: dict[str, np.ndarray], *, linear: bool = False):
+        self._curves = {}
+        for joint, t in times.items():
+            v = values[joint]
+            if len(t) == 1:
+                self._curves[joint] = (t, v, None)
+            elif linear:
+                self._curves[joint] = (t, v, None)
+            else:
+                self._curves[joint] = (t, v, PchipInterpolator(t, v, extrapolate=False))
+        self.end_time = max((float(t[-1]) for t in times.values()), default=0.0)
+
+    @property
+    def joints(self) -> list[str]:
+        return list(self._curves)
+
+    def targets(self, t: float) -> dict[str, float]:
+        out = {}
+        for joint, (times, vals, interp) in self._curves.items():
+            if t <= times[0]:
+                out[joint] = float(vals[0])
+            elif t >= times[-1]:
+                out[joint] = float(vals[-1])
+            elif interp is None:
+                out[joint] = float(np.interp(t, times, vals))
+            else:
+                out[joint] = float(interp(t))
+        return out
+
+
+def joint_waypoints(waypoints: list[tuple[float, dict[str, float]]], initial_q: dict[str, float]) -> JointProfile:
+    """Waypoints [(t, {joint: rad})]; a joint missing from a waypoint holds its previous value
+    (its initial value before it is first named)."""
+    current = dict(initial_q)
+    times: dict[str, list[float]] = {}
+    values: dict[str, list[float]] = {}
+    for t, q in waypoints:
+        current.update(q)
+        for joint, value in current.items():
+            times.setdefault(joint, []).append(float(t))
+            values.setdefault(joint, []).append(float(value))
+    return JointProfile({j: np.asarray(v) for j, v in times.items()},
+                        {j: np.asarray(v) for j, v in values.items()})
+
+
+def read_joint_csv(path: Path, joints: list[str], time_offset: float = 0.0) -> JointProfile:
+    """A recorded profile: column `t` (s) and per joint `<joint>` (rad) or `<joint>_deg` columns."""
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: cannot read the motion CSV ({exc.__class__.__name__}: {exc})") from None
+    rows = [r for r in rows if r and any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise UserError(f"{path}: expected a header row and at least one data row")
+    header = [h.strip() for h in rows[0]]
+    if "t" not in header:
+        raise UserError(f"{path}: no `t` column (the header has {', '.join(header)})")
+    columns: dict[str, tuple[int, float]] = {}
+    for i, name in enumerate(header):
+        base, scale = (name[:-4], math.pi / 180.0) if name.endswith("_deg") else (name, 1.0)
+        if base == "t":
+            continue
+        if base not in joints:
+            raise UserError(f"{path}: column {name!r} is not a joint of this machine "
+                            f"(joints: {', '.join(joints)})")
+        columns[base] = (i, scale)
+    if not columns:
+        raise UserError(f"{path}: no joint columns (expected some of {', '.join(joints)})")
+    data = np.empty((len(rows) - 1, len(header)))
+    for r, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise UserError(f"{path}: line {r}: expected {len(header)} values, got {len(row)}")
+        try:
+            data[r - 2] = [float(c) for c in row]
+        except ValueError:
+            raise UserError(f"{path}: line {r}: expected numbers, got {row}") from None
+    if not np.all(np.isfinite(data)):
+        bad = int(np.argwhere(~np.isfinite(data))[0][0]) + 2
+        raise UserError(f"{path}: line {bad}: non-finite value")
+    t = data[:, header.index("t")] + time_offset
+    if np.any(np.diff(t) <= 0):
+        bad = int(np.argmax(np.diff(t) <= 0)) + 3
+        raise UserError(f"{path}: line {bad}: times must strictly increase")
+    return JointProfile({j: t for j in columns}, {j: data[:, i] * s for j, (i, s) in columns.items()},
+                        linear=True)
+
+
+def bucket_tip_path(waypoints: list[tuple[float, np.ndarray, float]], kinematics, initial_q: dict[str, float],
+                    joints: list[str]) -> JointProfile:
+    """Cutting-edge waypoints [(t, xyz in the machine frame, bucket angle below horizontal)].
+
+    Segments are straight lines in Cartesian space (linear in xyz and bucket angle), sampled at
+    TIP_PATH_SAMPLE_HZ and solved by IK seeded from the previous sample, so the edge follows the line
+    (a drag stays level) rather than an arc in joint space.
+    """
+    q_prev = dict(initial_q)
+    # Check every waypoint first, so an unreachable one is named even if an earlier segment fails.
+    for i, (t, xyz, angle) in enumerate(waypoints):
+        try:
+            q_prev = kinematics.solve_tip(np.asarray(xyz, float), float(angle), q_guess=q_prev)
+        except ValueError as exc:
+            raise UserError(f"motion.waypoints.{i}: cutting edge at {list(map(float, xyz))} with bucket angle "
+                            f"{math.degrees(angle):.1f} deg is unreachable for this machine ({exc})") from None
+    samples_t, samples_q = [], []
+    q_prev = dict(initial_q)
+    for i, (t, xyz, angle) in enumerate(waypoints):
+        if i == 0:
+            seg = [(t, np.asarray(xyz, float), angle)]
+        else:
+            t0, xyz0, a0 = waypoints[i - 1]
+            n = max(1, int(math.ceil((t - t0) * TIP_PATH_SAMPLE_HZ)))
+            seg = [(t0 + (t - t0) * k / n,
+                    np.asarray(xyz0, float) + (np.asarray(xyz, float) - np.asarray(xyz0, float)) * k / n,
+                    a0 + (angle - a0) * k / n) for k in range(1, n + 1)]
+        for ts, p, a in seg:
+            try:
+                q_prev = kinematics.solve_tip(p, float(a), q_guess=q_prev)
+            except ValueError as exc:
+                raise UserError(f"motion.waypoints: the straight path from waypoint {i - 1} to {i} leaves the "
+                                f"reachable space near {np.round(p, 3).tolist()} ({exc})") from None
+            samples_t.append(ts)
+            samples_q.append(dict(q_prev))
+    times = np.asarray(samples_t)
+    names = [j for j in joints if j in samples_q[0]]
+    values = {j: np.unwrap(np.asarray([q[j] for q in samples_q])) for j in names}
+    if len(times) == 1:
+        return JointProfile({j: times for j in names}, values)
+    return JointProfile({j: times for j in names}, values, linear=False)
