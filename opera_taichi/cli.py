@@ -1,0 +1,100 @@
+"""Command line: `opera-taichi run|validate SCENE.yaml` (same as `python cli.py ...` in a checkout).
+
+Exit codes: 0 done, 1 a bug (traceback), 2 bad input (one line), 3 the simulation diverged, 130 interrupted.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import traceback
+
+from . import __version__
+from .errors import DivergenceError, UserError
+from .scene import load_scene, resolve_out_dir
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _simulation_module(required: bool):
+    """The simulation module, imported only when needed (it pulls in Taichi and PyBullet)."""
+    try:
+        return importlib.import_module("opera_taichi.simulation")
+    except ModuleNotFoundError as exc:
+        if not required and exc.name == "opera_taichi.simulation":
+            return None
+        raise
+
+
+def _cmd_validate(args) -> int:
+    scene = load_scene(args.scene, args.set)
+    simulation = _simulation_module(required=False)
+    if simulation is not None and hasattr(simulation, "check_scene"):
+        simulation.check_scene(scene)
+    print(f"{args.scene}: ok")
+    return 0
+
+
+def _cmd_run(args) -> int:
+    scene = load_scene(args.scene, args.set)
+    if args.arch is not None:
+        scene.sim.arch = args.arch
+    out_dir = resolve_out_dir(scene, args.out)
+    scene.output.dir = out_dir  # so the manifest's resolved scene names the folder actually written
+    simulation = _simulation_module(required=True)
+    result = simulation.run_scene(scene, out_dir=out_dir, arch=scene.sim.arch, quiet=args.quiet)
+    if not args.quiet:
+        print(result.out_dir)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="opera-taichi", description="Headless excavation simulator: Taichi soil + PyBullet excavator.")
+    parser.add_argument("--version", action="version", version=f"opera-taichi {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    def scene_command(name: str, help_text: str):
+        sub = commands.add_parser(name, help=help_text, description=help_text)
+        sub.add_argument("scene", metavar="SCENE.yaml", help="scene file")
+        sub.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
+                         help="override a scene key, value read as YAML (repeatable), "
+                              "e.g. --set sim.duration=5 --set soil.bed.0.max.2=-0.5")
+        return sub
+
+    run = scene_command("run", "run a scene and write a run folder")
+    run.add_argument("--out", metavar="DIR", help="run folder (default: output.dir, else runs/<name>-<time>)")
+    run.add_argument("--arch", choices=("cpu", "cuda", "auto"), help="Taichi backend (overrides sim.arch)")
+    run.add_argument("--quiet", action="store_true", help="no progress bar, no final path")
+    run.set_defaults(handler=_cmd_run)
+    validate = scene_command("validate", "check a scene (files, keys, joints) without running it")
+    validate.set_defaults(handler=_cmd_validate)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0) and usage errors (2)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    if args.command is None:
+        parser.print_usage(sys.stderr)
+        print("opera-taichi: error: a command is required (run or validate)", file=sys.stderr)
+        return 2
+    try:
+        return args.handler(args)
+    except UserError as exc:
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return UserError.exit_code
+    except DivergenceError as exc:
+        print(f"diverged: {_one_line(exc)}", file=sys.stderr)
+        return DivergenceError.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception:  # anything else is a bug: show where
+        traceback.print_exc()
+        return 1

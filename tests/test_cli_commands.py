@@ -1,0 +1,105 @@
+"""The CLI's commands and exit codes, with the simulation replaced by a stand-in (no Taichi here)."""
+import types
+from pathlib import Path
+
+import pytest
+
+from opera_taichi import __version__, cli
+from opera_taichi.errors import DivergenceError, UserError
+
+
+@pytest.fixture
+def scene_file(tmp_path) -> Path:
+    path = tmp_path / "dig.yaml"
+    path.write_text("sim: {duration: 2.0, arch: cpu}\n")
+    return path
+
+
+@pytest.fixture
+def fake_simulation(monkeypatch):
+    """Stands in for opera_taichi.simulation; records what the CLI passes and can be told to fail."""
+    calls = {}
+
+    def run_scene(scene, out_dir=None, arch=None, quiet=False):
+        calls.update(scene=scene, out_dir=out_dir, arch=arch, quiet=quiet)
+        if "raise" in calls:
+            raise calls["raise"]
+        return types.SimpleNamespace(out_dir=Path(out_dir))
+
+    def check_scene(scene):
+        calls["checked"] = scene
+        if "raise" in calls:
+            raise calls["raise"]
+
+    module = types.SimpleNamespace(run_scene=run_scene, check_scene=check_scene)
+    monkeypatch.setattr(cli, "_simulation_module", lambda required: module)
+    return calls
+
+
+def test_validate_prints_ok_and_runs_the_simulation_checks(scene_file, fake_simulation, capsys):
+    assert cli.main(["validate", str(scene_file), "--set", "sim.duration=3"]) == 0
+    assert capsys.readouterr().out == f"{scene_file}: ok\n"
+    assert fake_simulation["checked"].sim.duration == 3.0
+
+
+def test_validate_without_a_simulation_module_still_checks_the_schema(scene_file, monkeypatch, capsys):
+    monkeypatch.setattr(cli, "_simulation_module", lambda required: None)
+    assert cli.main(["validate", str(scene_file)]) == 0
+    assert capsys.readouterr().out.endswith(": ok\n")
+
+
+def test_validate_reports_a_check_failure_as_one_line(scene_file, fake_simulation, capsys):
+    fake_simulation["raise"] = UserError("machine.initial_joints.foo: not an actuated joint\nof zx120")
+    assert cli.main(["validate", str(scene_file)]) == 2
+    err = capsys.readouterr().err
+    assert err == "error: machine.initial_joints.foo: not an actuated joint of zx120\n"
+
+
+def test_run_passes_out_dir_arch_and_quiet(scene_file, fake_simulation, tmp_path, capsys):
+    out = tmp_path / "run1"
+    assert cli.main(["run", str(scene_file), "--out", str(out), "--arch", "auto"]) == 0
+    assert fake_simulation["out_dir"] == out and fake_simulation["arch"] == "auto"
+    assert fake_simulation["scene"].sim.arch == "auto"  # the manifest records the backend asked for
+    assert fake_simulation["scene"].output.dir == out
+    assert fake_simulation["quiet"] is False
+    assert capsys.readouterr().out == f"{out}\n"
+
+
+def test_run_quiet_prints_nothing_and_defaults_to_a_timestamped_folder(scene_file, fake_simulation, capsys):
+    assert cli.main(["run", str(scene_file), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == ""
+    out_dir = fake_simulation["out_dir"]
+    assert out_dir.parent == Path("runs") and out_dir.name.startswith("dig-")
+    assert fake_simulation["arch"] == "cpu" and fake_simulation["quiet"] is True
+
+
+def test_divergence_exits_3_with_one_line(scene_file, fake_simulation, capsys):
+    fake_simulation["raise"] = DivergenceError("particle speed 412 m/s > soil.max_speed 30 m/s at t = 1.234 s")
+    assert cli.main(["run", str(scene_file), "--quiet"]) == 3
+    assert capsys.readouterr().err == "diverged: particle speed 412 m/s > soil.max_speed 30 m/s at t = 1.234 s\n"
+
+
+def test_interrupt_exits_130_with_one_line(scene_file, fake_simulation, capsys):
+    fake_simulation["raise"] = KeyboardInterrupt()
+    assert cli.main(["run", str(scene_file)]) == 130
+    assert capsys.readouterr().err == "interrupted\n"
+
+
+def test_a_bug_exits_1_with_a_traceback(scene_file, fake_simulation, capsys):
+    fake_simulation["raise"] = ZeroDivisionError("oops")
+    assert cli.main(["run", str(scene_file)]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "ZeroDivisionError: oops" in err
+
+
+def test_version_help_and_usage_errors(capsys):
+    assert cli.main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"opera-taichi {__version__}"
+    assert cli.main(["run", "--help"]) == 0
+    assert "--set" in capsys.readouterr().out
+    assert cli.main([]) == 2
+    assert "command is required" in capsys.readouterr().err
+    assert cli.main(["run", "x.yaml", "--arch", "tpu"]) == 2
+    assert "invalid choice: 'tpu'" in capsys.readouterr().err
+    assert cli.main(["frobnicate"]) == 2

@@ -1,0 +1,47 @@
+"""The progress bar: silent off a terminal or when quiet, and its real-time factor and ETA are right."""
+import io
+
+import pytest
+
+from opera_taichi.progress import Progress
+
+
+class FakeTerminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def _drive(bar: Progress, duration: float):
+    with bar:
+        for i in range(1, 11):
+            bar.update(sim_time=duration * i / 10, wall_time=float(i))  # 1 wall second per tenth
+
+
+def test_no_output_when_not_a_terminal():
+    stream = io.StringIO()
+    _drive(Progress(20.0, stream=stream), 20.0)
+    assert stream.getvalue() == ""
+
+
+def test_no_output_when_quiet_even_on_a_terminal():
+    stream = FakeTerminal()
+    _drive(Progress(20.0, quiet=True, stream=stream), 20.0)
+    assert stream.getvalue() == ""
+
+
+def test_terminal_bar_shows_simulated_time_and_real_time_factor():
+    stream = FakeTerminal()
+    _drive(Progress(20.0, stream=stream), 20.0)
+    text = stream.getvalue()
+    assert "100%" in text and "20.00/20.00 s simulated" in text
+    assert "RTF 2x" in text  # 20 s simulated in 10 s wall
+
+
+@pytest.mark.parametrize("sim, wall, expected", [
+    (10.0, 5.0, "RTF 2x, ETA 00:05"),     # 10 s left at 2x real time
+    (5.0, 20.0, "RTF 0.25x, ETA 01:00"),  # 15 s left at a quarter of real time
+    (20.0, 8.0, "RTF 2.5x, ETA 00:00"),
+    (0.0, 0.0, "RTF ?, ETA ?"),
+])
+def test_real_time_factor_and_eta(sim, wall, expected):
+    assert Progress(20.0, quiet=True).describe(sim, wall) == expected
