@@ -7,7 +7,6 @@ Three kinds, all ending as a smooth joint-space profile:
 """
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,45 +78,22 @@ def joint_waypoints(waypoints: list[tuple[float, dict[str, float]]], initial_q: 
 
 def read_joint_csv(path: Path, joints: list[str], time_offset: float = 0.0) -> JointProfile:
     """A recorded profile: column `t` (s) and per joint `<joint>` (rad) or `<joint>_deg` columns."""
+    from .scene import CsvProblem, read_motion_csv
+
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: cannot read the motion CSV ({exc.__class__.__name__}: {exc})") from None
-    rows = [r for r in rows if r and any(c.strip() for c in r)]
-    if len(rows) < 2:
-        raise UserError(f"{path}: expected a header row and at least one data row")
-    header = [h.strip() for h in rows[0]]
-    if "t" not in header:
-        raise UserError(f"{path}: no `t` column (the header has {', '.join(header)})")
-    columns: dict[str, tuple[int, float]] = {}
-    for i, name in enumerate(header):
-        base, scale = (name[:-4], math.pi / 180.0) if name.endswith("_deg") else (name, 1.0)
-        if base == "t":
-            continue
-        if base not in joints:
-            raise UserError(f"{path}: column {name!r} is not a joint of this machine "
+        times, angles = read_motion_csv(Path(path))
+    except CsvProblem as exc:
+        raise UserError(f"{path}: {exc}") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the motion CSV ({exc.strerror})") from None
+    for joint in angles:
+        if joint not in joints:
+            raise UserError(f"{path}: column {joint!r} is not a joint of this machine "
                             f"(joints: {', '.join(joints)})")
-        columns[base] = (i, scale)
-    if not columns:
+    if not angles:
         raise UserError(f"{path}: no joint columns (expected some of {', '.join(joints)})")
-    data = np.empty((len(rows) - 1, len(header)))
-    for r, row in enumerate(rows[1:], start=2):
-        if len(row) != len(header):
-            raise UserError(f"{path}: line {r}: expected {len(header)} values, got {len(row)}")
-        try:
-            data[r - 2] = [float(c) for c in row]
-        except ValueError:
-            raise UserError(f"{path}: line {r}: expected numbers, got {row}") from None
-    if not np.all(np.isfinite(data)):
-        bad = int(np.argwhere(~np.isfinite(data))[0][0]) + 2
-        raise UserError(f"{path}: line {bad}: non-finite value")
-    t = data[:, header.index("t")] + time_offset
-    if np.any(np.diff(t) <= 0):
-        bad = int(np.argmax(np.diff(t) <= 0)) + 3
-        raise UserError(f"{path}: line {bad}: times must strictly increase")
-    return JointProfile({j: t for j in columns}, {j: data[:, i] * s for j, (i, s) in columns.items()},
-                        linear=True)
+    t = np.asarray(times, float) + time_offset
+    return JointProfile({j: t for j in angles}, {j: np.asarray(v, float) for j, v in angles.items()}, linear=True)
 
 
 def bucket_tip_path(waypoints: list[tuple[float, np.ndarray, float]], kinematics, initial_q: dict[str, float],

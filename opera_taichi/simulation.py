@@ -273,18 +273,16 @@ class RunResult:
 
 
 def _versions() -> dict:
-    out = {"opera_taichi": __version__, "python": platform.python_version(), "numpy": np.__version__}
-    for mod in ("taichi", "pybullet", "trimesh", "yourdfpy", "pydantic"):
+    """Versions of what produced the run; read from package metadata so nothing heavy is imported."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"opera_taichi": __version__, "python": platform.python_version()}
+    for dist in ("taichi", "pybullet", "numpy", "trimesh", "yourdfpy", "pydantic"):
         try:
-            m = __import__(mod)
-            out[mod] = getattr(m, "__version__", None) or ".".join(map(str, getattr(m, "version", ""))) or "?"
-        except Exception:  # a version lookup must never stop a run
-            out[mod] = None
+            out[dist] = version(dist)
+        except PackageNotFoundError:
+            out[dist] = None
     return out
-
-
-def default_out_dir(scene) -> Path:
-    return Path("runs") / f"{scene.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
 
 
 def _terrain_axes(scene) -> tuple[np.ndarray, np.ndarray]:
@@ -322,8 +320,9 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
     from .scene import scene_to_dict
 
     model = build_model(scene)
-    out = Path(out_dir) if out_dir is not None else (Path(scene.output.dir) if scene.output.dir else
-                                                     default_out_dir(scene))
+    from .scene import resolve_out_dir
+
+    out = resolve_out_dir(scene, out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -51,12 +51,12 @@ def test_csv_replay_with_degree_columns(tmp_path):
 
 @pytest.mark.parametrize("text, words", [
     ("time,boom_joint\n0,1\n", "no `t` column"),
-    ("t,boom_joint\n0,1\n0,2\n", "strictly increase"),
+    ("t,boom_joint\n0,1\n0,2\n", "strictly increasing"),
     ("t,stick_joint\n0,1\n1,2\n", "not a joint"),
-    ("t,boom_joint\n0,abc\n", "expected numbers"),
-    ("t,boom_joint\n0,nan\n", "non-finite"),
-    ("t,boom_joint\n", "at least one data row"),
-    ("t,boom_joint\n0,1,2\n", "expected 2 values"),
+    ("t,boom_joint\n0,abc\n", "expected a number"),
+    ("t,boom_joint\n0,nan\n", "finite"),
+    ("t,boom_joint\n", "no rows"),
+    ("t,boom_joint\n0,1,2\n", "expected 2 fields"),
 ])
 def test_bad_csv_is_one_clear_line(tmp_path, text, words):
     path = tmp_path / "bad.csv"
