@@ -1,9 +1,13 @@
 """opera-taichi: a Taichi soil solver coupled two-way to a PyBullet excavator."""
 import importlib.util as _ilu
+import os as _os
 import sys as _sys
 from pathlib import Path as _Path
 
 __version__ = "0.1.0"
+
+# Taichi prints a version banner on import; the run folder records versions, so keep stdout clean.
+_os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
 # An installed copy has opera_taichi.kernels (setuptools package-dir). A source checkout keeps
 # kernels/ beside this package; register it under the same name so `python cli.py` works uninstalled.

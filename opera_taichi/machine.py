@@ -12,10 +12,13 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
-import pybullet as pb
 from lxml import etree
 
 from . import paths
+from ._quiet import quiet_c_output
+
+with quiet_c_output():  # pybullet's C code prints its build time on import; keep stdout for our output
+    import pybullet as pb
 from .errors import UserError
 from .machine_description import MOVABLE, MachineDescription, atomic_write
 
@@ -40,7 +43,8 @@ class BulletMachine:
             if name not in self.joint_names:
                 raise UserError(f"initial joint angles: unknown joint {name!r} (actuated: {', '.join(self.joint_names)})")
 
-        self.client = pb.connect(pb.DIRECT)
+        with quiet_c_output():
+            self.client = pb.connect(pb.DIRECT)
         c = self.client
         pb.setGravity(0, 0, -gravity, physicsClientId=c)
         pb.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, numSolverIterations=SOLVER_ITERATIONS,
