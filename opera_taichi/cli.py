@@ -8,6 +8,7 @@ import argparse
 import importlib
 import sys
 import traceback
+from pathlib import Path
 
 from . import __version__
 from .errors import DivergenceError, UserError
@@ -50,6 +51,29 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_validate_physics(args) -> int:
+    from .validation import cases
+
+    if args.case == "all":
+        if args.param:
+            raise UserError("--param: not allowed with `all` (it runs the fixed gate set)")
+        from .validation import report
+
+        path = report.run_all(resolution=args.resolution, out_dir=args.out, report_path=args.report,
+                              arch=args.arch, quiet=args.quiet)
+        if not args.quiet:
+            print(path)
+        return 0
+    metrics = cases.run_case(args.case, args.param, resolution=args.resolution, out_dir=args.out, arch=args.arch,
+                             quiet=args.quiet)
+    if not args.quiet:
+        rel = metrics["relative_error"]
+        print(f"{metrics['case']}: {metrics['metric']} = {metrics['measured']:.4g} (reference "
+              f"{metrics['reference']:.4g}{'' if rel is None else f', error {rel:+.1%}'}) "
+              f"{'PASS' if metrics['passed'] else 'FAIL'}; {Path(metrics['run_dir']).parent / 'metrics.json'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="opera-taichi", description="Headless excavation simulator: Taichi soil + PyBullet excavator.")
@@ -71,6 +95,23 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=_cmd_run)
     validate = scene_command("validate", "check a scene (files, keys, joints) without running it")
     validate.set_defaults(handler=_cmd_validate)
+    physics = commands.add_parser(
+        "validate-physics", help="run a physics validation case against its analytic reference",
+        description="Run a validation case (blade_cut, passive_wall, column_collapse, repose, vertical_cut) and "
+                    "write DIR/metrics.json next to the run folder DIR/run/; `all` runs the gate set and writes "
+                    "the report (docs/validation.md and its plots).")
+    physics.add_argument("case", metavar="CASE", help="blade_cut | passive_wall | column_collapse | repose | "
+                                                      "vertical_cut | all")
+    physics.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                         help="case parameter (repeatable), e.g. --param depth=0.2 --param rake_deg=60")
+    physics.add_argument("--resolution", choices=("coarse", "default", "fine"), default="default",
+                         help="particle size (diameters across the case's key length)")
+    physics.add_argument("--out", metavar="DIR", help="output folder (default: runs/validate-<case>-<time>)")
+    physics.add_argument("--report", metavar="FILE", default="docs/validation.md",
+                         help="report written by `all` (plots go beside it in <stem>/)")
+    physics.add_argument("--arch", choices=("cpu", "cuda", "auto"), help="Taichi backend")
+    physics.add_argument("--quiet", action="store_true", help="no progress bars")
+    physics.set_defaults(handler=_cmd_validate_physics)
     return parser
 
 
@@ -82,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     if args.command is None:
         parser.print_usage(sys.stderr)
-        print("opera-taichi: error: a command is required (run or validate)", file=sys.stderr)
+        print("opera-taichi: error: a command is required (run, validate or validate-physics)", file=sys.stderr)
         return 2
     try:
         return args.handler(args)

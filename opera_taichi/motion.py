@@ -17,7 +17,7 @@ from scipy.interpolate import PchipInterpolator
 from .errors import UserError
 
 # Cartesian paths are solved by IK at this rate, then interpolated in joint space.
-TIP_PATH_SAMPLE_HZ = 20.0
+TIP_PATH_SAMPLE_HZ = 10.0
 
 
 @dataclass

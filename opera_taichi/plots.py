@@ -32,6 +32,8 @@ def plot_joints(csv_path: Path, joints: list[str], png_path: Path) -> None:
 def plot_tool_wrench(csv_path: Path, png_path: Path) -> None:
     cols = read_csv_columns(csv_path)
     tools = sorted(set(cols["tool"]))
+    if not tools:  # a soil scene without tools has nothing to plot
+        return
     fig, axes = plt.subplots(len(tools), 1, figsize=(9, 3 * len(tools)), sharex=True, squeeze=False)
     tool_col = np.asarray(cols["tool"])
     for ax, tool in zip(axes[:, 0], tools):

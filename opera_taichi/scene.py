@@ -351,6 +351,9 @@ class SoilConfig(_Model):
     max_speed: _num("m/s", gt=0) = Field(30.0, description="Divergence guard: a faster particle stops the run "
                                                            "(exit 3).")
     heightmap_cell: _num("m", gt=0) = Field(0.05, description="Cell size of the terrain heightmaps.")
+    bed_shift: Vec3M = Field((0.0, 0.0, 0.0), description="Moves every settled bed particle by [dx, dy, dz] at "
+                             "t = 0, leaving the pits empty: [dx, 0, H] stands a settled block of height H on the "
+                             "ground, released at once (column collapse, heaps, free-standing cuts).")
 
     @model_validator(mode="after")
     def _bed_fits(self):

@@ -209,6 +209,10 @@ class Simulation:
                                       beds=[(tuple(b.min), tuple(b.max)) for b in soil.bed],
                                       seed=int(scene.sim.seed), dt=model.soil_dt,
                                       max_speed=float(soil.max_speed), settle_time=float(soil.settle_time))
+            shift = np.asarray(soil.bed_shift, float)
+            if np.any(shift != 0.0):  # a settled block released above the ground (the pits stay, empty)
+                parts = self.state.soil.particles()
+                self.state.soil.set_particles(parts["positions"] + shift, radii=parts["radii"])
             names = []
             if model.machine is not None:
                 for link in model.machine.soil_links:

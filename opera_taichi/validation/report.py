@@ -1,0 +1,183 @@
+"""`validate-physics all`: runs the gate set and writes docs/validation.md with its PNG plots."""
+from __future__ import annotations
+
+import json
+import math
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from . import references as ref
+from .cases import run_case
+
+SAND = {"friction_deg": 35.0, "density": 1700.0, "preset": "sand"}
+
+# (label, case, parameters): the gates of the issue "Validation suite"
+def gate_set() -> list[tuple[str, str, dict]]:
+    from .cases import culmann_height
+
+    hc = culmann_height("dirt")
+    return [
+        ("blade_a90_d0.3_w1.5", "blade_cut", {**SAND, "depth": 0.3, "width": 1.5, "rake_deg": 90.0, "delta_deg": 0.0}),
+        ("blade_a60_delta20_d0.3", "blade_cut", {**SAND, "depth": 0.3, "width": 1.5, "rake_deg": 60.0,
+                                                 "delta_deg": 20.0}),
+        ("blade_a90_d0.2_w1.5", "blade_cut", {**SAND, "depth": 0.2, "width": 1.5, "rake_deg": 90.0, "delta_deg": 0.0}),
+        ("blade_a90_d0.2_w1.0", "blade_cut", {**SAND, "depth": 0.2, "width": 1.0, "rake_deg": 90.0, "delta_deg": 0.0}),
+        ("passive_wall_H0.3", "passive_wall", {**SAND, "height": 0.3}),
+        *[(f"column_a{a:g}", "column_collapse", {"aspect_ratio": a, "preset": "sand"}) for a in (0.5, 1.0, 2.0)],
+        ("repose_sand", "repose", {"preset": "sand"}),
+        ("repose_glass_beads", "repose", {"preset": "glass_beads"}),
+        ("vertical_cut_0.6Hc", "vertical_cut", {"preset": "dirt", "height": 0.6 * hc}),
+        ("vertical_cut_2Hc", "vertical_cut", {"preset": "dirt", "height": 2.0 * hc}),
+    ]
+
+
+def run_all(resolution: str = "default", out_dir=None, report_path="docs/validation.md", arch=None,
+            quiet: bool = True) -> Path:
+    """Run every gate case into OUT/<label>/ and write the report; returns the report's path."""
+    out = Path(out_dir) if out_dir is not None else Path("runs") / f"validation-{resolution}"
+    results = []
+    for label, case, params in gate_set():
+        m = run_case(case, {k: str(v) for k, v in params.items()}, resolution, out / label, arch=arch, quiet=quiet)
+        m["label"] = label
+        results.append(m)
+    command = f"opera-taichi validate-physics all --resolution {resolution} --out {out}"
+    if str(report_path) != "docs/validation.md":
+        command += f" --report {report_path}"
+    return write_report(results, Path(report_path), command)
+
+
+def derived_gates(results: list[dict]) -> list[dict]:
+    """Gates on ratios of runs: draft ~ d^2 and ~ w within 10%; column run-out log-log slope for a <= 1."""
+    by = {r["label"]: r for r in results}
+    rows = []
+
+    def total(label):
+        r = by[label]
+        return r["measured"] * r["parameters"]["width"]
+
+    if {"blade_a90_d0.3_w1.5", "blade_a90_d0.2_w1.5"} <= by.keys():
+        ratio = total("blade_a90_d0.3_w1.5") / total("blade_a90_d0.2_w1.5")
+        expect = (0.3 / 0.2) ** 2
+        rows.append(dict(label="blade draft ~ d^2 (d 0.3 vs 0.2)", measured=ratio, reference=expect,
+                         relative_error=ratio / expect - 1, passed=abs(ratio / expect - 1) <= 0.10, gate="within 10%"))
+    if {"blade_a90_d0.2_w1.5", "blade_a90_d0.2_w1.0"} <= by.keys():
+        ratio = total("blade_a90_d0.2_w1.5") / total("blade_a90_d0.2_w1.0")
+        rows.append(dict(label="blade draft ~ w (w 1.5 vs 1.0)", measured=ratio, reference=1.5,
+                         relative_error=ratio / 1.5 - 1, passed=abs(ratio / 1.5 - 1) <= 0.10, gate="within 10%"))
+    small = [r for r in results if r["case"] == "column_collapse" and r["parameters"]["aspect_ratio"] <= 1.0
+             and r["measured"] > 0]
+    if len(small) >= 2:
+        slope = ref.loglog_slope([r["parameters"]["aspect_ratio"] for r in small], [r["measured"] for r in small])
+        rows.append(dict(label="run-out log-log slope, a <= 1", measured=slope, reference=1.0,
+                         relative_error=slope - 1.0, passed=abs(slope - 1.0) <= 0.15, gate="1.0 +- 0.15"))
+    return rows
+
+
+def _fmt(v) -> str:
+    if isinstance(v, bool):
+        return "stood" if v else "collapsed"
+    if v is None:
+        return "-"
+    if isinstance(v, float) and not math.isfinite(v):
+        return "nan"
+    return f"{v:.4g}"
+
+
+def write_report(results: list[dict], report_path: Path, command: str) -> Path:
+    """docs/validation.md (table + plots in <report stem>/) from the metrics of the gate runs."""
+    report_path = Path(report_path)
+    plot_dir = report_path.parent / report_path.stem
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    plots = _plots(results, plot_dir)
+    resolutions = sorted({r["resolution"] for r in results})
+    lines = ["# Physics validation", "",
+             f"Generated {datetime.now().isoformat(timespec='seconds')} at resolution {', '.join(resolutions)}. "
+             "Regenerate with:", "", "```", command, "```", "",
+             "Each row is one run (its folder holds `metrics.json` and the usual run folder `run/`). "
+             "References: Reece/McKyes earthmoving equation with the failure angle minimised, Rankine passive "
+             "thrust, Lube 2005 and Lajeunesse 2005 run-out laws, the material's repose angle, Culmann's critical "
+             "height (opera_taichi/validation/references.py).", "",
+             "| run | metric | measured | reference | error | pass | resolution | particles | wall time s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        ref_text = _fmt(r["reference"])
+        if r.get("band"):
+            ref_text += f" (band {r['band'][0]:.3g}-{r['band'][1]:.3g})"
+        rel = r["relative_error"]
+        lines.append(f"| {r.get('label', r['case'])} | {r['metric']} {r.get('unit', '')} | {_fmt(r['measured'])} | "
+                     f"{ref_text} | {'-' if rel is None else f'{rel:+.1%}'} | {'pass' if r['passed'] else 'FAIL'} | "
+                     f"{r['resolution']} | {r.get('particles', '-')} | {r['wall_time_s']:.0f} |")
+    derived = derived_gates(results)
+    if derived:
+        lines += ["", "Gates on ratios of the runs above:", "", "| gate | measured | reference | error | pass |",
+                  "|---|---|---|---|---|"]
+        for d in derived:
+            lines.append(f"| {d['label']} ({d['gate']}) | {d['measured']:.3f} | {d['reference']:.3f} | "
+                         f"{d['relative_error']:+.1%} | {'pass' if d['passed'] else 'FAIL'} |")
+    lines += [""] + [f"![{name}]({plot_dir.name}/{path.name})" for name, path in plots] + [""]
+    report_path.write_text("\n".join(lines))
+    (plot_dir / "metrics.json").write_text(json.dumps(
+        [{k: v for k, v in r.items() if k != "extra"} for r in results], indent=1, default=float) + "\n")
+    return report_path
+
+
+def _plots(results: list[dict], plot_dir: Path) -> list[tuple[str, Path]]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    made = []
+    cols = [r for r in results if r["case"] == "column_collapse"]
+    if cols:
+        fig, ax = plt.subplots(figsize=(5.5, 4.2))
+        a = np.logspace(math.log10(0.2), math.log10(10.0), 200)
+        ax.loglog(a, ref.runout_lube(a), "b-", label="Lube et al. 2005")
+        ax.loglog(a, ref.runout_lajeunesse(a), "g-", label="Lajeunesse et al. 2005")
+        band = np.array([ref.runout_band(x) for x in a])
+        ax.fill_between(a, band[:, 0], band[:, 1], color="0.85", label="gate band (+-15%)")
+        ax.loglog([r["parameters"]["aspect_ratio"] for r in cols], [max(r["measured"], 1e-3) for r in cols], "ko",
+                  label="DEM")
+        ax.set(xlabel="aspect ratio a = H0/L0", ylabel="run-out (L_inf - L0)/L0", title="Column collapse")
+        ax.legend()
+        made.append(("run-out vs aspect ratio", _save(fig, plot_dir / "runout.png")))
+        plt.close(fig)
+    blades = [r for r in results if r["case"] == "blade_cut"]
+    if blades:
+        fig, ax = plt.subplots(figsize=(5.5, 4.2))
+        for rake, delta, colour in ((90.0, 0.0, "b"), (60.0, 20.0, "r")):
+            pts = [r for r in blades if abs(math.degrees(r["parameters"]["rake"]) - rake) < 1e-6
+                   and abs(math.degrees(r["parameters"]["delta"]) - delta) < 1e-6]
+            if not pts:
+                continue
+            p0 = pts[0]["parameters"]
+            d = np.linspace(0.05, 0.4, 50)
+            fee = [ref.earthmoving_force(x, 1.0, p0["rake"], p0["friction"], p0["delta"], p0["density"],
+                                         p0["cohesion"]).draft for x in d]
+            ax.plot(d, fee, colour + "-", label=f"FEE, alpha {rake:g}, delta {delta:g} deg")
+            ax.plot([r["parameters"]["depth"] for r in pts], [r["measured"] for r in pts], colour + "o",
+                    label=f"DEM, alpha {rake:g}, delta {delta:g} deg")
+        ax.set(xlabel="cutting depth d (m)", ylabel="draft per width (N/m)", title="Flat blade in sand")
+        ax.legend(fontsize=8)
+        made.append(("draft vs depth", _save(fig, plot_dir / "blade_force_depth.png")))
+        plt.close(fig)
+    walls = [r for r in results if r["case"] == "passive_wall" and r.get("extra", {}).get("curve")]
+    if walls:
+        fig, ax = plt.subplots(figsize=(5.5, 4.2))
+        for r in walls:
+            c = r["extra"]["curve"]
+            ax.plot(c["displacement"], c["thrust_per_width"], "-", lw=0.8, label=f"DEM, H {r['parameters']['height']:g} m")
+            ax.axhline(r["reference"], color="k", ls="--", label="Rankine passive 0.5 Kp gamma g H^2")
+        ax.set(xlabel="wall displacement (m)", ylabel="thrust per width (N/m)", title="Smooth wall pushed into sand")
+        ax.legend(fontsize=8)
+        made.append(("wall thrust vs displacement", _save(fig, plot_dir / "passive_wall.png")))
+        plt.close(fig)
+    return made
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path

@@ -1,0 +1,140 @@
+"""Validation runner without running the DEM: parameters, scene building, metric extraction, CLI errors, report."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from opera_taichi.cli import main
+from opera_taichi.errors import UserError
+from opera_taichi.scene import load_scene
+from opera_taichi.validation import cases, report
+
+
+@pytest.mark.parametrize("case", cases.CASES)
+def test_every_case_builds_a_valid_scene_at_every_resolution(case):
+    p = cases.parse_params(case, [])
+    radii = []
+    for res in cases.RESOLUTIONS:
+        sets, geo = cases.build_overrides(case, p, res)
+        scene = load_scene(cases.scene_file(case), sets)
+        assert scene.soil.overrides["radius"] == pytest.approx(geo["radius"])
+        radii.append(geo["radius"])
+    assert radii[0] > radii[1] > radii[2]  # finer resolution, smaller particles
+
+
+def _numbers(value):
+    if isinstance(value, dict):
+        return [x for k in sorted(value) for x in _numbers(value[k])]
+    if isinstance(value, (list, tuple)):
+        return [x for v in value for x in _numbers(v)]
+    return [value]
+
+
+def test_shipped_scenes_are_the_default_case():
+    # the YAML in scenes/validation is what `validate-physics CASE` runs at its defaults
+    for case in cases.CASES:
+        sets, _ = cases.build_overrides(case, cases.parse_params(case, []), "default")
+        plain = load_scene(cases.scene_file(case)).model_dump(mode="json")
+        built = load_scene(cases.scene_file(case), sets).model_dump(mode="json")
+        assert plain["soil"]["preset"] == built["soil"]["preset"]
+        for part, key in (("soil", "bed"), ("soil", "domain"), ("soil", "bed_shift"), ("soil", "overrides"),
+                          ("sim", "duration"), ("tools", None)):
+            a = plain[part] if key is None else plain[part][key]
+            b = built[part] if key is None else built[part][key]
+            a, b = _numbers(a), _numbers(b)
+            assert [type(x) for x in a if isinstance(x, str)] == [type(x) for x in b if isinstance(x, str)]
+            assert np.allclose([x for x in a if not isinstance(x, str) and x is not None],
+                               [x for x in b if not isinstance(x, str) and x is not None], atol=1e-5), (case, key)
+
+
+def test_blade_geometry_puts_the_cutting_edge_at_depth_and_rake():
+    p = cases.parse_params("blade_cut", ["depth=0.2", "rake_deg=60", "width=1.0"])
+    sets, geo = cases.build_overrides("blade_cut", p, "coarse")
+    tool = load_scene(cases.scene_file("blade_cut"), sets).tools[0]
+    from opera_taichi.validation.cases import _rot_y
+
+    rot = _rot_y(tool.rpy[1])
+    t, w, length = tool.box
+    corners = np.array([[sx * t / 2, sy * w / 2, sz * length / 2] for sx in (-1, 1) for sy in (-1, 1)
+                        for sz in (-1, 1)]) @ rot.T + np.asarray(tool.start)
+    assert corners[:, 2].min() == pytest.approx(-0.2)      # cuts at depth d
+    assert corners[:, 0].max() < 0.0                       # starts clear of the soil (pit starts at x = 0)
+    face_normal = rot @ np.array([1.0, 0.0, 0.0])          # the face that meets the soil
+    assert math.degrees(math.atan2(face_normal[0], face_normal[2])) == pytest.approx(60.0)  # 60 deg from horizontal
+    assert w == pytest.approx(1.0) and tool.velocity[0] == pytest.approx(0.1)
+
+
+def test_vertical_cut_default_height_is_below_culmann():
+    p = cases.parse_params("vertical_cut", [])
+    hc = cases.culmann_height("dirt")
+    assert hc == pytest.approx(1.245, abs=1e-3)
+    assert p["height"] == pytest.approx(0.6 * hc)
+
+
+@pytest.mark.parametrize("case, items, words", [
+    ("blade_cut", ["depht=0.2"], "--param depht: unknown parameter of blade_cut"),
+    ("blade_cut", ["depth=x"], "--param depth: expected a number"),
+    ("blade_cut", ["rake_deg=120"], "--param rake_deg"),
+    ("blade_cut", ["adhesion=100"], "no soil-tool adhesion"),
+    ("repose", ["preset=mud"], "--param preset: expected one of"),
+    ("column_collapse", ["aspect_ratio"], "expected NAME=VALUE"),
+    ("nope", [], "unknown case 'nope'"),
+])
+def test_bad_parameters_are_one_line_user_errors(case, items, words):
+    with pytest.raises(UserError) as exc:
+        cases.parse_params(case, items)
+    assert words in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_cli_bad_case_and_param_exit_2(capsys):
+    assert main(["validate-physics", "nope"]) == 2
+    assert main(["validate-physics", "passive_wall", "--param", "height=-1"]) == 2
+    assert main(["validate-physics", "all", "--param", "height=1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("error: ") for line in err)
+
+
+def test_runout_length_ends_at_the_first_gap():
+    rng = np.random.default_rng(0)
+    pos = np.zeros((2000, 3))
+    pos[:, 0] = rng.uniform(0.0, 1.5, 2000)
+    pos[-1, 0] = 3.0  # one particle thrown far ahead is not the deposit
+    rad = np.full(2000, 0.01)
+    assert cases.runout_length(pos, rad, 0.02) == pytest.approx(1.51, abs=0.005)
+
+
+def test_heap_angles_of_a_cone():
+    rng = np.random.default_rng(1)
+    angle = math.radians(31.0)
+    n = 40000
+    rho = 0.5 * np.sqrt(rng.uniform(0, 1, n))
+    theta = rng.uniform(-math.pi, math.pi, n)
+    top = (0.5 - rho) * math.tan(angle)
+    z = rng.uniform(0, 1, n) * top  # filled cone; the highest per bin is near the surface
+    pos = np.stack([rho * np.cos(theta), rho * np.sin(theta), z], axis=1)
+    angles = cases.heap_angles(pos, np.full(n, 0.005), 0.01)
+    assert len(angles) == 4
+    assert math.degrees(np.mean(angles)) == pytest.approx(31.0, abs=1.0)
+
+
+def test_report_from_metrics(tmp_path):
+    def m(case, label, measured, reference, passed, **params):
+        return dict(case=case, label=label, metric="x", unit="N/m", measured=measured, reference=reference,
+                    relative_error=(measured - reference) / reference, passed=passed, gate="g", parameters=params,
+                    resolution="coarse", particles=10, wall_time_s=1.0, extra={})
+    blade = dict(rake=math.pi / 2, delta=0.0, friction=math.radians(35), density=1700.0, cohesion=0.0)
+    results = [m("blade_cut", "blade_a90_d0.3_w1.5", 2800.0, 2769.3, True, depth=0.3, width=1.5, **blade),
+               m("blade_cut", "blade_a90_d0.2_w1.5", 1200.0, 1230.8, True, depth=0.2, width=1.5, **blade),
+               m("blade_cut", "blade_a90_d0.2_w1.0", 1250.0, 1230.8, True, depth=0.2, width=1.0, **blade),
+               m("column_collapse", "column_a0.5", 0.7, 0.75, True, aspect_ratio=0.5),
+               m("column_collapse", "column_a1", 1.4, 1.5, True, aspect_ratio=1.0)]
+    path = report.write_report(results, tmp_path / "validation.md", "opera-taichi validate-physics all")
+    text = path.read_text()
+    assert "opera-taichi validate-physics all" in text
+    assert (tmp_path / "validation" / "runout.png").is_file()
+    assert (tmp_path / "validation" / "blade_force_depth.png").is_file()
+    gates = {g["label"]: g for g in report.derived_gates(results)}
+    assert gates["blade draft ~ d^2 (d 0.3 vs 0.2)"]["measured"] == pytest.approx(2800 / 1200)
+    assert gates["blade draft ~ w (w 1.5 vs 1.0)"]["measured"] == pytest.approx(1200 * 1.5 / (1250 * 1.0))
+    assert gates["run-out log-log slope, a <= 1"]["measured"] == pytest.approx(1.0)
