@@ -1,0 +1,710 @@
+"""Cohesive DEM of spheres: contact forces, integration, neighbour lists on a hashed cell grid, tools.
+
+Taichi code only. Every array is a Taichi ndarray owned by the caller (opera_taichi.dem_soil), so one
+compiled kernel serves every soil instance in a process (fields would recompile per instance).
+
+Precision: particle state, forces and every reduction are f64. The momentum and Newton's-third-law checks
+need 1e-6 relative over thousands of steps and tool wrenches are summed over many particles; in f32 the
+rounding of v += F/m dt alone drifts past that. Contact history (spring elongations) is f32: it only has to be
+accurate to the contact law, and pair forces stay exactly antisymmetric because both sides store the exact
+negation of the same rounded value.
+
+Data layout (n = particle capacity, E = neighbour-entry capacity):
+  kin[n, 3]     vec3 f64   position, velocity, angular velocity (two buffers: a step reads one, writes the other)
+  prop[n]       vec4 f64   radius, mass, 1/mass, 1/moment of inertia
+  flags[n]      i32        1 active, 0 inactive (left the domain)
+  x_ref[n]      vec3 f64   position at the last neighbour build (Verlet skin criterion)
+  surf_id[n, 4] i32        static face held by each wall-contact slot (-1 free)
+  surf_h[n, 8]  vec6 f32   history: slots 0-3 static faces, 4-7 tools; (tangential spring, rolling spring)
+  nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  full neighbour list in CSR form (both directions of each pair,
+                the neighbours of i at nbr_off[i]..nbr_off[i+1]) and each entry's pair history
+  prm[N_PRM]    f64        model parameters and static geometry (P_* indices)
+  stat[N_STAT]  f64        diagnostics written by the kernels (S_* indices)
+  tools[MAX_TOOLS, T_WIDTH] f64   SDF grid placement and the current kinematic pose of each tool
+  tool_acc[MAX_TOOLS, 6]    f64   force and torque (about the link origin) the soil puts on each tool
+  sdf[total]    vec4 f32   all tool SDF grids back to back: distance, unit gradient (link frame)
+
+The neighbour list is a full list (each pair stored by both particles) so that each particle writes only its
+own force: no atomics in the hot loop and the result does not depend on thread scheduling (deterministic for a
+seed, backend and thread count). Both sides evaluate the same expressions on swapped inputs, which gives
+exactly opposite forces, so linear momentum is conserved to round-off.
+"""
+import taichi as ti
+
+MAX_TOOLS = 4
+MAX_PITS = 16
+WALL_SLOTS = 4
+SURF_SLOTS = WALL_SLOTS + MAX_TOOLS
+BLOCK = 64  # particles per reduction block (one atomic per block, not per particle)
+MORTON_BITS = 21
+CELL_LIMIT = (1 << MORTON_BITS) - 2
+
+# prm indices
+P_KN = 0          # particle-particle normal stiffness, N/m
+P_DAMP = 1        # damping factor: gamma_n = P_DAMP * sqrt(m_eff k)
+P_MU = 2          # particle-particle friction coefficient
+P_MU_R = 3        # rolling resistance coefficient
+P_COH_F = 4       # cohesive force at contact, N
+P_COH_D = 5       # cohesion range beyond contact, m
+P_K_WALL = 6      # ground / wall normal stiffness
+P_MU_WALL = 7
+P_K_TOOL = 8
+P_MU_TOOL = 9
+P_G = 10          # gravity, 3 entries
+P_DMIN = 13       # domain min corner, 3 entries
+P_DMAX = 16       # domain max corner, 3 entries
+P_CELL = 19       # neighbour cell edge, m
+P_SKIN = 20       # Verlet skin, m
+P_NPITS = 21
+P_ETA_R = 22      # rolling damping ratio (EPSD)
+P_KT_RATIO = 23   # k_t / k_n (2/7)
+P_PITS = 32       # pits: 6 entries each (min xyz, max xyz), MAX_PITS of them
+N_PRM = P_PITS + 6 * MAX_PITS
+
+# stat indices
+S_DISP2 = 0       # max squared displacement since the last neighbour build (this substep)
+S_SPEED2 = 1      # max squared particle speed since the last reset
+S_NONFINITE = 2   # particles with a non-finite state since the last reset
+S_LOST_MASS = 3   # cumulative mass deactivated (left the domain), kg
+S_LOST_COUNT = 4  # cumulative count deactivated
+N_STAT = 8
+
+# tools row layout
+T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2, 3, 4, 5, 8, 9, 12, 21, 24
+T_WIDTH = 32
+
+FACE_GROUND = 4   # face ids: 0-3 domain walls (x-, x+, y-, y+), 4 ground top, 5 + 5k + f pit k faces
+FACES_PER_PIT = 5
+HUGE = 1e300
+
+vec3 = ti.types.vector(3, ti.f64)
+vec4 = ti.types.vector(4, ti.f64)
+vec6f = ti.types.vector(6, ti.f32)
+vec4f = ti.types.vector(4, ti.f32)
+mat3 = ti.types.matrix(3, 3, ti.f64)
+
+KIN = ti.types.ndarray(dtype=vec3, ndim=2)
+KIN1 = ti.types.ndarray(dtype=vec3, ndim=1)
+PROP = ti.types.ndarray(dtype=vec4, ndim=1)
+I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+HIST_1 = ti.types.ndarray(dtype=vec6f, ndim=1)
+I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
+F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+HIST = ti.types.ndarray(dtype=vec6f, ndim=2)
+SDF = ti.types.ndarray(dtype=vec4f, ndim=1)
+
+
+# ----------------------------------------------------------------------------------------------- contact law
+@ti.func
+def contact_law(n, overlap, v_c, w_rel, m_eff, i_eff, r_roll, lever, hist, k, mu, mu_r, prm: ti.template(), dt):
+    """Force and torque on body A of one contact (n points from B to A, overlap > 0).
+
+    v_c: velocity of A's contact point relative to B's; w_rel: angular velocity of A relative to B;
+    lever: vector from A's centre to the contact point; hist: (tangential spring, rolling spring).
+    Returns force on A, torque on A about its centre, normal force (spring + dashpot), new history.
+    Normal: linear spring-dashpot (Cundall & Strack). The dashpot may pull briefly while the bodies separate;
+    that is what makes the restitution exactly e (clipping it would raise e for strong damping). Tangential: spring k_t = P_KT_RATIO k with history,
+    capped at mu F_n (Coulomb); the stored spring is projected onto the current tangent plane each step (the
+    contact frame turns a little per step; the length lost is of second order in that turn). Rolling and
+    twisting: EPSD type C (Ai et al. 2011) spring k_r = 2.25 mu_r^2 k r_roll^2 on the relative rotation with
+    viscous damping while elastic, torque capped at mu_r r_roll F_n.
+    """
+    gamma = prm[P_DAMP] * ti.sqrt(m_eff * k)
+    v_n = v_c.dot(n)
+    f_n = k * overlap - gamma * v_n
+    f_press = ti.max(f_n, 0.0)  # friction and rolling resistance need compression
+    v_t = v_c - v_n * n
+    kt = prm[P_KT_RATIO] * k
+    gt = prm[P_KT_RATIO] * gamma
+    xi = vec3(hist[0], hist[1], hist[2])
+    xi += v_t * dt - xi.dot(n) * n
+    f_t = -kt * xi - gt * v_t
+    cap = mu * f_press
+    ft2 = f_t.dot(f_t)
+    if ft2 > cap * cap:
+        # sliding: force at the Coulomb limit, spring set to what that force implies (Luding 2008)
+        f_t *= cap / ti.sqrt(ft2)
+        xi = -(f_t + gt * v_t) / kt
+    theta = vec3(0.0)
+    m_r = vec3(0.0)
+    if mu_r > 0.0:
+        # the whole relative rotation, rolling and twisting (spin about n): a sphere spinning on its contact
+        # would otherwise never stop
+        kr = ti.f64(2.25) * mu_r * mu_r * k * r_roll * r_roll
+        cr = prm[P_ETA_R] * 3.0 * mu_r * r_roll * ti.sqrt(i_eff * k)  # eta 2 sqrt(I_eff k_r)
+        theta = vec3(hist[3], hist[4], hist[5]) + w_rel * dt
+        m_r = -kr * theta - cr * w_rel
+        cap_r = mu_r * r_roll * f_press
+        mr2 = m_r.dot(m_r)
+        if mr2 > cap_r * cap_r:
+            m_r *= cap_r / ti.sqrt(mr2)
+            theta = -m_r / ti.max(kr, 1e-300)  # kr > 0 here; the guard only silences constant folding
+    force = f_n * n + f_t
+    torque = lever.cross(f_t) + m_r
+    new_hist = vec6f(xi[0], xi[1], xi[2], theta[0], theta[1], theta[2])
+    return force, torque, f_n, new_hist
+
+
+@ti.func
+def cohesion_force(gap, prm: ti.template()):
+    """Attraction magnitude between two particles with surface gap `gap` (negative = overlapping).
+
+    Holz-style bond: F at and inside contact, falling linearly to 0 at gap = D, so the force is continuous.
+    """
+    f = ti.f64(0.0)
+    big_f = prm[P_COH_F]
+    dist = prm[P_COH_D]
+    if gap <= 0.0:
+        f = big_f
+    elif gap < dist:
+        f = big_f * (1.0 - gap / dist)
+    return f
+
+
+# ----------------------------------------------------------------------------------------------- pair forces
+@ti.func
+def _pair_sum(i, x_i, v_i, w_i, p_i, kin: ti.template(), prop: ti.template(), nbr_off: ti.template(),
+              nbr_j: ti.template(), nbr_h: ti.template(), prm: ti.template(), dt):
+    """Force and torque on particle i from its neighbour list: contacts and cohesion; updates pair springs."""
+    r_i = p_i[0]
+    m_i = p_i[1]
+    reach_extra = prm[P_COH_D]
+    k = prm[P_KN]
+    mu = prm[P_MU]
+    mu_r = prm[P_MU_R]
+    f = vec3(0.0)
+    t = vec3(0.0)
+    for e in range(nbr_off[i], nbr_off[i + 1]):
+        j = nbr_j[e]
+        dx = x_i - kin[j, 0]
+        d2 = dx.dot(dx)
+        p_j = prop[j]
+        r_j = p_j[0]
+        r_sum = r_i + r_j
+        reach = r_sum + reach_extra
+        touching = False
+        if d2 < reach * reach and d2 > 0.0:
+            d = ti.sqrt(d2)
+            n = dx * (1.0 / d)
+            gap = d - r_sum
+            if gap < 0.0:
+                touching = True
+                m_j = p_j[1]
+                m_eff = m_i * m_j / (m_i + m_j)
+                i_eff = 1.0 / (p_i[3] + p_j[3])
+                r_roll = r_i * r_j / r_sum
+                lever_i = -r_i * n
+                w_j = kin[j, 2]
+                v_c = (v_i + w_i.cross(lever_i)) - (kin[j, 1] + w_j.cross(r_j * n))
+                force, torque, f_n, h = contact_law(n, -gap, v_c, w_i - w_j, m_eff, i_eff, r_roll, lever_i,
+                                                    nbr_h[e], k, mu, mu_r, prm, dt)
+                f += force
+                t += torque
+                nbr_h[e] = h
+            f -= cohesion_force(gap, prm) * n
+        if not touching:
+            h_old = nbr_h[e]
+            if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
+                nbr_h[e] = vec6f(0.0)
+    return f, t
+
+
+# ----------------------------------------------------------------------------------------------- static geometry
+@ti.func
+def _pit_of(x, prm: ti.template()):
+    """Index of the pit whose footprint holds x (its centre), or -1."""
+    found = -1
+    for k in range(ti.cast(prm[P_NPITS], ti.i32)):
+        b = P_PITS + 6 * k
+        if found < 0 and prm[b] <= x[0] <= prm[b + 3] and prm[b + 1] <= x[1] <= prm[b + 4]:
+            found = k
+    return found
+
+
+@ti.func
+def _clearance(x, pit, prm: ti.template()):
+    """Lower bound of the distance from x to every static face that can touch it (plane distances)."""
+    c = ti.min(ti.min(x[0] - prm[P_DMIN], prm[P_DMAX] - x[0]), ti.min(x[1] - prm[P_DMIN + 1], prm[P_DMAX + 1] - x[1]))
+    if pit < 0:
+        c = ti.min(c, x[2])
+    else:
+        b = P_PITS + 6 * pit
+        c = ti.min(c, ti.min(x[2] - prm[b + 2], ti.min(ti.min(x[0] - prm[b], prm[b + 3] - x[0]),
+                                                       ti.min(x[1] - prm[b + 1], prm[b + 4] - x[1]))))
+    return c
+
+
+@ti.func
+def _face(fid, pit, x, r, prm: ti.template()):
+    """Geometry of static face `fid` seen from a particle at x: (overlap, outward normal, buried).
+
+    overlap <= 0: no contact. buried: the centre is inside the solid (the particle tunnelled) or outside the
+    domain, and the particle must be taken out of the simulation.
+    """
+    overlap = ti.f64(-1.0)
+    n = vec3(0.0)
+    buried = False
+    if fid < 4:  # domain side walls, full height
+        axis = fid // 2
+        side = fid % 2
+        dist = x[axis] - prm[P_DMIN + axis]
+        n[axis] = 1.0
+        if side == 1:
+            dist = prm[P_DMAX + axis] - x[axis]
+            n[axis] = -1.0
+        if dist <= 0.0:
+            buried = True
+        overlap = r - dist
+    elif fid == FACE_GROUND:
+        if pit < 0:
+            n[2] = 1.0
+            if x[2] <= 0.0:
+                buried = True
+            overlap = r - x[2]
+    else:
+        k = (fid - 5) // FACES_PER_PIT
+        f = (fid - 5) % FACES_PER_PIT
+        if k == pit:
+            b = P_PITS + 6 * k
+            z_floor = prm[b + 2]
+            if f == 0:
+                n[2] = 1.0
+                if x[2] <= z_floor:
+                    buried = True
+                overlap = r - (x[2] - z_floor)
+            else:
+                # wall rectangle spans floor..0; above ground its top edge is the (rounded) pit rim
+                axis = (f - 1) // 2
+                side = (f - 1) % 2
+                d = vec3(0.0)
+                d[axis] = x[axis] - prm[b + axis]
+                if side == 1:
+                    d[axis] = x[axis] - prm[b + 3 + axis]
+                d[2] = x[2] - ti.min(ti.max(x[2], z_floor), 0.0)
+                dist = d.norm()
+                if dist > 0.0:
+                    n = d / dist
+                    overlap = r - dist
+    return overlap, n, buried
+
+
+@ti.func
+def _find_slot(ids, fid):
+    """Slot already holding face fid, else the first free slot, else -1 (contact without history)."""
+    slot = -1
+    free = -1
+    for s in ti.static(range(WALL_SLOTS)):
+        if ids[s] == fid and slot < 0:
+            slot = s
+        if ids[s] < 0 and free < 0:
+            free = s
+    if slot < 0:
+        slot = free
+    return slot
+
+
+@ti.func
+def _tool_rotation(tools: ti.template(), t):
+    return mat3(tools[t, T_ROT + 0], tools[t, T_ROT + 1], tools[t, T_ROT + 2],
+                tools[t, T_ROT + 3], tools[t, T_ROT + 4], tools[t, T_ROT + 5],
+                tools[t, T_ROT + 6], tools[t, T_ROT + 7], tools[t, T_ROT + 8])
+
+
+@ti.func
+def sample_sdf(sdf: ti.template(), tools: ti.template(), t, p_local):
+    """Trilinear (distance, gradient) of tool t's SDF at a link-frame point; distance HUGE outside the grid."""
+    out = vec4(HUGE, 0.0, 0.0, 0.0)
+    h = tools[t, T_H]
+    u = (p_local - vec3(tools[t, T_ORG], tools[t, T_ORG + 1], tools[t, T_ORG + 2])) / h
+    nx = ti.cast(tools[t, T_NX], ti.i32)
+    ny = ti.cast(tools[t, T_NY], ti.i32)
+    nz = ti.cast(tools[t, T_NZ], ti.i32)
+    if 0.0 <= u[0] < nx - 1 and 0.0 <= u[1] < ny - 1 and 0.0 <= u[2] < nz - 1:
+        i0 = ti.cast(ti.floor(u[0]), ti.i32)
+        j0 = ti.cast(ti.floor(u[1]), ti.i32)
+        k0 = ti.cast(ti.floor(u[2]), ti.i32)
+        fx = u[0] - i0
+        fy = u[1] - j0
+        fz = u[2] - k0
+        base = ti.cast(tools[t, T_OFF], ti.i32) + (i0 * ny + j0) * nz + k0
+        acc = vec4(0.0)
+        for c in ti.static(range(8)):
+            di, dj, dk = c // 4, (c // 2) % 2, c % 2
+            wgt = (fx if di else 1.0 - fx) * (fy if dj else 1.0 - fy) * (fz if dk else 1.0 - fz)
+            acc += wgt * ti.cast(sdf[base + (di * ny + dj) * nz + dk], ti.f64)
+        out = acc
+    return out
+
+
+@ti.func
+def _rotation_from_vector(phi):
+    """Rotation matrix of the rotation vector phi (Rodrigues)."""
+    angle = phi.norm()
+    rot = ti.Matrix.identity(ti.f64, 3)
+    if angle > 1e-300:
+        a = phi / angle
+        kx = mat3(0.0, -a[2], a[1], a[2], 0.0, -a[0], -a[1], a[0], 0.0)
+        rot += ti.sin(angle) * kx + (1.0 - ti.cos(angle)) * (kx @ kx)
+    return rot
+
+
+# ----------------------------------------------------------------------------------------------- integration
+@ti.kernel
+def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, nbr_off: I32_1,
+         nbr_j: I32_1, nbr_h: HIST_1, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
+         prm: F64_1, stat: F64_1, dt: ti.f64, bulk_damping: ti.f64) -> ti.f64:
+    """One substep: every force on each particle (neighbours, gravity, ground and walls, tools), then
+    symplectic Euler into kin_out (kin is only read, so particles can be advanced as soon as their forces are
+    known, in one pass), then the tools move.
+
+    Returns the largest squared displacement since the last neighbour build (HUGE when a particle left the
+    domain, so the caller rebuilds and drops it from the lists).
+    """
+    stat[S_DISP2] = 0.0
+    n_blocks = (n_act + BLOCK - 1) // BLOCK
+    for blk in range(n_blocks):
+        disp2_max = ti.f64(0.0)
+        speed2_max = ti.f64(0.0)
+        nonfinite = ti.f64(0.0)
+        lost_mass = ti.f64(0.0)
+        lost_count = ti.f64(0.0)
+        for i in range(blk * BLOCK, ti.min(n_act, (blk + 1) * BLOCK)):
+            if flags[i] == 1:  # (all of 0..n_act are active: a deactivation triggers a rebuild at once)
+                x = kin[i, 0]
+                v = kin[i, 1]
+                w = kin[i, 2]
+                p = prop[i]
+                r = p[0]
+                m = p[1]
+                force, torque = _pair_sum(i, x, v, w, p, kin, prop, nbr_off, nbr_j, nbr_h, prm, dt)
+                force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
+                buried = False
+                # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
+                ids = ti.Vector([surf_id[i, 0], surf_id[i, 1], surf_id[i, 2], surf_id[i, 3]])
+                pit = _pit_of(x, prm)
+                if _clearance(x, pit, prm) < r or ids.max() >= 0:  # most particles are far from every face
+                    touched = ti.Vector([0, 0, 0, 0])
+                    n_faces = 5
+                    if pit >= 0:
+                        n_faces += FACES_PER_PIT
+                    for q in range(n_faces):  # domain walls, ground, then the faces of this particle's pit
+                        fid = q if q < 5 else q + FACES_PER_PIT * pit
+                        overlap, n, out = _face(fid, pit, x, r, prm)
+                        if out:
+                            buried = True
+                        if overlap > 0.0 and not out:
+                            slot = _find_slot(ids, fid)
+                            hist = vec6f(0.0)
+                            if slot >= 0:
+                                hist = surf_h[i, slot]
+                            lever = -r * n
+                            f_c, t_c, f_n, h_new = contact_law(n, overlap, v + w.cross(lever), w, m, 1.0 / p[3],
+                                                               r, lever, hist, prm[P_K_WALL], prm[P_MU_WALL],
+                                                               prm[P_MU_R], prm, dt)
+                            force += f_c
+                            torque += t_c
+                            if slot >= 0:
+                                ids[slot] = fid
+                                touched[slot] = 1
+                                surf_h[i, slot] = h_new
+                    for s in ti.static(range(WALL_SLOTS)):
+                        if touched[s] == 0 and ids[s] >= 0:
+                            surf_h[i, s] = vec6f(0.0)
+                            ids[s] = -1
+                        surf_id[i, s] = ids[s]
+                # kinematic tools: SDF in the link frame, the reaction summed per tool
+                for t in range(MAX_TOOLS):
+                    if tools[t, T_ON] > 0.0:
+                        rot = _tool_rotation(tools, t)
+                        origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
+                        sample = sample_sdf(sdf, tools, t, rot.transpose() @ (x - origin))
+                        hit = False
+                        if sample[0] < r:
+                            g_world = rot @ vec3(sample[1], sample[2], sample[3])
+                            g_norm = g_world.norm()
+                            if g_norm > 1e-12:
+                                hit = True
+                                n = g_world / g_norm
+                                lever = -r * n
+                                x_c = x + lever
+                                w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
+                                v_tool = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]) + \
+                                    w_tool.cross(x_c - origin)
+                                f_c, t_c, f_n, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
+                                                                   w - w_tool, m, 1.0 / p[3], r, lever,
+                                                                   surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
+                                                                   prm[P_MU_TOOL], prm[P_MU_R], prm, dt)
+                                force += f_c
+                                torque += t_c
+                                surf_h[i, WALL_SLOTS + t] = h_new
+                                arm = x_c - origin
+                                on_tool = -f_c
+                                moment = arm.cross(on_tool)
+                                for c in ti.static(range(3)):
+                                    ti.atomic_add(tool_acc[t, c], on_tool[c])
+                                    ti.atomic_add(tool_acc[t, 3 + c], moment[c])
+                        if not hit:
+                            h_old = surf_h[i, WALL_SLOTS + t]
+                            if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
+                                surf_h[i, WALL_SLOTS + t] = vec6f(0.0)
+                if x[2] > prm[P_DMAX + 2]:
+                    buried = True
+                if buried:
+                    # left the domain (or tunnelled into the ground): book the mass, drop the particle
+                    flags[i] = 0
+                    kin_out[i, 0] = x
+                    kin_out[i, 1] = vec3(0.0)
+                    kin_out[i, 2] = vec3(0.0)
+                    lost_mass += m
+                    lost_count += 1.0
+                    disp2_max = HUGE
+                else:
+                    damp = 1.0 / (1.0 + bulk_damping * dt)
+                    v = (v + force * (p[2] * dt)) * damp
+                    w = (w + torque * (p[3] * dt)) * damp
+                    x += v * dt
+                    kin_out[i, 0] = x
+                    kin_out[i, 1] = v
+                    kin_out[i, 2] = w
+                    dx = x - x_ref[i]
+                    speed2 = v.dot(v)
+                    if not (speed2 < HUGE and dx.dot(dx) < HUGE):  # NaN fails every comparison
+                        nonfinite += 1.0
+                    else:
+                        disp2_max = ti.max(disp2_max, dx.dot(dx))
+                        speed2_max = ti.max(speed2_max, speed2)
+        ti.atomic_max(stat[S_DISP2], disp2_max)
+        ti.atomic_max(stat[S_SPEED2], speed2_max)
+        if nonfinite > 0.0:
+            ti.atomic_add(stat[S_NONFINITE], nonfinite)
+        if lost_count > 0.0:
+            ti.atomic_add(stat[S_LOST_MASS], lost_mass)
+            ti.atomic_add(stat[S_LOST_COUNT], lost_count)
+    # tools move kinematically: p += v dt, R <- Rot(w dt) R
+    for t in range(MAX_TOOLS):
+        if tools[t, T_ON] > 0.0:
+            vel = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2])
+            ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
+            for c in ti.static(range(3)):
+                tools[t, T_POS + c] += vel[c] * dt
+            rot = _rotation_from_vector(ang * dt) @ _tool_rotation(tools, t)
+            for a in ti.static(range(3)):
+                for b in ti.static(range(3)):
+                    tools[t, T_ROT + 3 * a + b] = rot[a, b]
+    return stat[S_DISP2]
+
+
+# ----------------------------------------------------------------------------------------------- neighbour build
+@ti.func
+def _spread_bits(v):
+    x = ti.cast(v, ti.i64) & ti.i64(0x1fffff)
+    x = (x | (x << 32)) & ti.i64(0x1f00000000ffff)
+    x = (x | (x << 16)) & ti.i64(0x1f0000ff0000ff)
+    x = (x | (x << 8)) & ti.i64(0x100f00f00f00f00f)
+    x = (x | (x << 4)) & ti.i64(0x10c30c30c30c30c3)
+    x = (x | (x << 2)) & ti.i64(0x1249249249249249)
+    return x
+
+
+@ti.func
+def _morton(c):
+    return _spread_bits(c[0]) | (_spread_bits(c[1]) << 1) | (_spread_bits(c[2]) << 2)
+
+
+@ti.func
+def _cell_of(x, prm: ti.template()):
+    """Integer cell of a position, offset by one so that every neighbour cell index stays >= 0."""
+    c = ti.Vector([1, 1, 1])
+    for a in ti.static(range(3)):
+        u = (x[a] - prm[P_DMIN + a]) / prm[P_CELL]
+        if u > -1.0 and u < CELL_LIMIT - 1:  # also false for NaN: such particles go to cell 1
+            c[a] = ti.cast(ti.floor(u), ti.i32) + 1
+    return c
+
+
+@ti.kernel
+def bin_particles(n: ti.i32, kin: KIN, flags: I32_1, cell: I64_1, bucket: I32_1, counts: I32_1,
+                  prm: F64_1, mask: ti.i32):
+    """Hash each active particle's cell (Morton code, masked: spatially coherent buckets) and count per bucket.
+
+    Inactive particles go to the extra bucket mask + 1, i.e. after every active one.
+    """
+    for b in range(counts.shape[0]):
+        counts[b] = 0
+    for i in range(n):
+        key = mask + 1
+        code = ti.i64(-1)
+        if flags[i] == 1:
+            code = _morton(_cell_of(kin[i, 0], prm))
+            key = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+        cell[i] = code
+        bucket[i] = key
+        ti.atomic_add(counts[key], 1)
+
+
+@ti.kernel
+def sort_by_bucket(n: ti.i32, bucket: I32_1, counts: I32_1, starts: I32_1, order: I32_1, mask: ti.i32) -> ti.i32:
+    """Counting sort (serial, so the order inside a bucket is the old order: deterministic).
+
+    starts[b]..starts[b+1] are the sorted slots of bucket b; order[sorted slot] = old index.
+    Returns the number of active particles.
+    """
+    starts[0] = 0
+    ti.loop_config(serialize=True)
+    for b in range(mask + 2):
+        starts[b + 1] = starts[b] + counts[b]
+        counts[b] = starts[b]
+    ti.loop_config(serialize=True)
+    for i in range(n):
+        key = bucket[i]
+        order[counts[key]] = i
+        counts[key] += 1
+    return starts[mask + 1]
+
+
+@ti.kernel
+def gather_particles(n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP, prop_out: PROP,
+                     flags: I32_1, flags_out: I32_1, surf_id: I32_2, surf_id_out: I32_2, surf_h: HIST,
+                     surf_h_out: HIST, cell: I64_1, cell_out: I64_1):
+    """Reorder all per-particle state into cell order (memory locality for the pair loop)."""
+    for k in range(n):
+        o = order[k]
+        for c in ti.static(range(3)):
+            kin_out[k, c] = kin[o, c]
+        prop_out[k] = prop[o]
+        flags_out[k] = flags[o]
+        cell_out[k] = cell[o]
+        for s in ti.static(range(WALL_SLOTS)):
+            surf_id_out[k, s] = surf_id[o, s]
+        for s in ti.static(range(SURF_SLOTS)):
+            surf_h_out[k, s] = surf_h[o, s]
+
+
+@ti.kernel
+def count_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, nbr_off: I32_1,
+                    prm: F64_1, mask: ti.i32) -> ti.i32:
+    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i; then the prefix sum
+    (nbr_off[i] is where i's list starts). Returns the total number of entries."""
+    nbr_off[0] = 0
+    for i in range(n_act):
+        x_i = kin[i, 0]
+        r_i = prop[i][0]
+        c_i = _cell_of(x_i, prm)
+        extra = prm[P_COH_D] + prm[P_SKIN]
+        count = 0
+        for d in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
+            code = _morton(c_i + d)
+            b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+            for j in range(starts[b], starts[b + 1]):
+                if cell[j] == code and j != i:  # buckets mix cells: keep only this cell's particles
+                    dx = x_i - kin[j, 0]
+                    reach = r_i + prop[j][0] + extra
+                    if dx.dot(dx) < reach * reach:
+                        count += 1
+        nbr_off[i + 1] = count
+    ti.loop_config(serialize=True)
+    for i in range(n_act):
+        nbr_off[i + 1] += nbr_off[i]
+    return nbr_off[n_act]
+
+
+@ti.kernel
+def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, order: I32_1,
+                   old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
+                   x_ref: KIN1, prm: F64_1, mask: ti.i32):
+    """Write the lists counted by count_neighbors, carrying each pair's spring over from the old lists.
+
+    Particles are already sorted (new index = slot); a pair's old history is found in the old list of its old
+    indices (order[new] = old). Also records the positions the skin criterion is measured from.
+    """
+    for i in range(n_act):
+        x_i = kin[i, 0]
+        r_i = prop[i][0]
+        c_i = _cell_of(x_i, prm)
+        extra = prm[P_COH_D] + prm[P_SKIN]
+        e = nbr_off[i]
+        o_i = order[i]
+        for d in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
+            code = _morton(c_i + d)
+            b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+            for j in range(starts[b], starts[b + 1]):
+                if cell[j] == code and j != i:
+                    dx = x_i - kin[j, 0]
+                    reach = r_i + prop[j][0] + extra
+                    if dx.dot(dx) < reach * reach:
+                        nbr_j[e] = j
+                        o_j = order[j]
+                        h = vec6f(0.0)
+                        for s in range(old_off[o_i], old_off[o_i + 1]):
+                            if old_j[s] == o_j:
+                                h = old_h[s]
+                        nbr_h[e] = h
+                        e += 1
+        x_ref[i] = x_i
+
+
+# ----------------------------------------------------------------------------------------------- diagnostics
+@ti.kernel
+def totals(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, out: F64_1):
+    """out = [mass, momentum x y z, kinetic energy (translation + rotation), max speed, count, 0]."""
+    for c in range(8):
+        out[c] = 0.0
+    n_blocks = (n_act + BLOCK - 1) // BLOCK
+    for blk in range(n_blocks):
+        acc = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], ti.f64)
+        for i in range(blk * BLOCK, ti.min(n_act, (blk + 1) * BLOCK)):
+            if flags[i] == 1:
+                m = prop[i][1]
+                v = kin[i, 1]
+                w = kin[i, 2]
+                acc[0] += m
+                acc[1] += m * v[0]
+                acc[2] += m * v[1]
+                acc[3] += m * v[2]
+                acc[4] += 0.5 * m * v.dot(v) + 0.5 * w.dot(w) / prop[i][3]
+                acc[5] = ti.max(acc[5], v.norm())
+                acc[6] += 1.0
+        for c in ti.static(range(5)):
+            ti.atomic_add(out[c], acc[c])
+        ti.atomic_max(out[5], acc[5])
+        ti.atomic_add(out[6], acc[6])
+
+
+@ti.kernel
+def surface_height(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, height: F64_2, x0: ti.f64, dx: ti.f64,
+                   y0: ti.f64, dy: ti.f64):
+    """height[ix, iy] = max(z + r) of the particles whose centre lies in cell (ix, iy) (cells centred on axes)."""
+    for i in range(n_act):
+        if flags[i] == 1:
+            x = kin[i, 0]
+            ix = ti.cast(ti.floor((x[0] - x0) / dx + 0.5), ti.i32)
+            iy = ti.cast(ti.floor((x[1] - y0) / dy + 0.5), ti.i32)
+            if 0 <= ix < height.shape[0] and 0 <= iy < height.shape[1]:
+                ti.atomic_max(height[ix, iy], x[2] + prop[i][0])
+
+
+@ti.kernel
+def mass_in_box(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, origin: vec3, rot: mat3, lo: vec3,
+                hi: vec3) -> ti.f64:
+    """Mass of active particles whose centre, in the frame (origin, rot: frame -> world), lies in [lo, hi]."""
+    total = ti.f64(0.0)
+    for i in range(n_act):
+        if flags[i] == 1:
+            q = rot.transpose() @ (kin[i, 0] - origin)
+            if lo[0] <= q[0] <= hi[0] and lo[1] <= q[1] <= hi[1] and lo[2] <= q[2] <= hi[2]:
+                total += prop[i][1]
+    return total
+
+
+@ti.kernel
+def reset_contacts(n: ti.i32, nbr_off: I32_1, surf_id: I32_2, surf_h: HIST):
+    """Empty neighbour lists and free every wall and tool contact slot."""
+    for i in range(n + 1):
+        nbr_off[i] = 0
+    for i in range(n):
+        for s in ti.static(range(WALL_SLOTS)):
+            surf_id[i, s] = -1
+        for s in ti.static(range(SURF_SLOTS)):
+            surf_h[i, s] = vec6f(0.0)

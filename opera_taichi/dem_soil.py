@@ -1,0 +1,596 @@
+"""DemSoil: the cohesive DEM soil over the Taichi kernels (model + state; Python orchestrates, kernels compute).
+
+Particles live in Taichi ndarrays between steps; Python never loops over them. A soil is built from beds
+(pits cut into the ground at z = 0, filled by pouring a jittered lattice and letting it settle), or from given
+particles (`set_particles`). Settled beds are cached on disk. Tools are rigid kinematic bodies given by a
+signed distance grid in their link frame.
+
+Neighbour search: particles are binned into cells of edge 2 r_max + D + skin, hashed (Morton code masked to a
+table of ~2 n buckets, so memory follows the particle count, not the domain) and counting-sorted, which also
+reorders the particle arrays for memory locality. Each particle keeps a Verlet list of the particles within
+r_i + r_j + D + skin, rebuilt only when some particle has moved more than skin / 2 (a reduction in the
+integration kernel) or left the domain; contact springs are carried over at a rebuild.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import asdict
+
+import numpy as np
+import taichi as ti
+from scipy.spatial.transform import Rotation
+
+from .errors import DivergenceError, UserError
+from .kernels import dem
+from .paths import cache_dir
+from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
+from .tool_sdf import tool_sdf
+
+SOLVER_VERSION = 2
+NEIGHBORS_PER_PARTICLE = 12   # initial neighbour-entry capacity per particle; grows when exceeded
+SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
+SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
+POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
+
+
+def _vec3(value, key: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise UserError(f"{key}: expected three numbers [x, y, z], got {value!r}") from None
+    if not np.all(np.isfinite(arr)):
+        raise UserError(f"{key}: expected finite numbers, got {value!r}")
+    return arr
+
+
+def _check_domain(domain_min, domain_max) -> tuple[np.ndarray, np.ndarray]:
+    lo = _vec3(domain_min, "soil.domain.min")
+    hi = _vec3(domain_max, "soil.domain.max")
+    if not np.all(hi > lo):
+        raise UserError(f"soil.domain: expected min < max on every axis, got min {lo.tolist()} max {hi.tolist()}")
+    if not hi[2] > 0.0:
+        raise UserError(f"soil.domain.max: z must be above the ground (z = 0), got {hi[2]:g}")
+    return lo, hi
+
+
+def _check_beds(beds, lo, hi, r_max) -> list[tuple[np.ndarray, np.ndarray]]:
+    if len(beds) > dem.MAX_PITS:
+        raise UserError(f"soil.bed: at most {dem.MAX_PITS} beds, got {len(beds)}")
+    out = []
+    for i, bed in enumerate(beds):
+        key = f"soil.bed[{i}]"
+        try:
+            b_min, b_max = bed
+        except (TypeError, ValueError):
+            raise UserError(f"{key}: expected [min, max] corners, got {bed!r}") from None
+        b_min = _vec3(b_min, key + ".min")
+        b_max = _vec3(b_max, key + ".max")
+        if not np.all(b_max > b_min):
+            raise UserError(f"{key}: expected min < max on every axis, got min {b_min.tolist()} max {b_max.tolist()}")
+        if b_max[2] > 0.0:
+            raise UserError(f"{key}.max: the bed is a pit below the ground, so z <= 0 is required, got {b_max[2]:g}")
+        if np.any(b_min < lo) or np.any(b_max[:2] > hi[:2]):
+            raise UserError(f"{key}: min {b_min.tolist()} max {b_max.tolist()} is not inside the domain "
+                            f"min {lo.tolist()} max {hi.tolist()}")
+        if np.any(b_max - b_min < 4.0 * r_max):
+            raise UserError(f"{key}: each side must hold at least two particles (>= {4 * r_max:g} m), "
+                            f"got {(b_max - b_min).tolist()}")
+        for j, (o_min, o_max) in enumerate(out):
+            if np.all(b_min[:2] < o_max[:2]) and np.all(o_min[:2] < b_max[:2]):
+                raise UserError(f"{key}: overlaps soil.bed[{j}] in plan view; beds must not overlap")
+        out.append((b_min, b_max))
+    return out
+
+
+_GRAPH: dict = {}
+
+
+def _substep_graph():
+    """Compute graph of one substep, built once per Taichi runtime; None if the backend cannot build graphs
+    (then the kernel is launched directly). Launching an ndarray kernel from Python costs ~20 us per argument,
+    which would dominate small soils; a graph binds the arguments in C++."""
+    runtime = id(ti.lang.impl.get_runtime().prog)
+    if _GRAPH.get("runtime") != runtime:
+        _GRAPH.clear()
+        _GRAPH["runtime"] = runtime
+        try:
+            arg, kind = ti.graph.Arg, ti.graph.ArgKind
+
+            def nd(name, dtype, ndim):
+                return arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim)
+
+            builder = ti.graph.GraphBuilder()
+            builder.dispatch(dem.step, arg(kind.SCALAR, "n_act", ti.i32), nd("kin", dem.vec3, 2),
+                             nd("kin_out", dem.vec3, 2), nd("prop", dem.vec4, 1), nd("flags", ti.i32, 1),
+                             nd("x_ref", dem.vec3, 1), nd("nbr_off", ti.i32, 1), nd("nbr_j", ti.i32, 1),
+                             nd("nbr_h", dem.vec6f, 1), nd("surf_id", ti.i32, 2), nd("surf_h", dem.vec6f, 2),
+                             nd("tools", ti.f64, 2), nd("tool_acc", ti.f64, 2), nd("sdf", dem.vec4f, 1),
+                             nd("prm", ti.f64, 1), nd("stat", ti.f64, 1), arg(kind.SCALAR, "dt", ti.f64),
+                             arg(kind.SCALAR, "bulk_damping", ti.f64))
+            _GRAPH["graph"] = builder.compile()
+        except Exception:  # noqa: BLE001 - any failure here just means direct launches
+            _GRAPH["graph"] = None
+    return _GRAPH["graph"]
+
+
+_STEP_ARGS = ("n_act", "kin", "kin_out", "prop", "flags", "x_ref", "nbr_off", "nbr_j", "nbr_h", "surf_id", "surf_h",
+              "tools", "tool_acc", "sdf", "prm", "stat", "dt", "bulk_damping")
+
+
+class DemSoil:
+    """Cohesive DEM soil in a domain with a ground plane, pits (beds) and kinematic tools."""
+
+    def __init__(self, micro: SoilMicro, *, domain_min, domain_max, beds: list[tuple[tuple, tuple]],
+                 seed: int = 0, dt: float | None = None, max_speed: float = 30.0, settle_time: float = 1.0,
+                 use_cache: bool = True, gravity=(0.0, 0.0, -GRAVITY), skin: float | None = None):
+        self.micro = micro
+        self.r_max = micro.radius * (1.0 + micro.polydispersity)
+        self.domain_min, self.domain_max = _check_domain(domain_min, domain_max)
+        self.beds = _check_beds(beds, self.domain_min, self.domain_max, self.r_max)
+        if dt is None:
+            dt = micro.dt_limit
+        check_dt(micro, dt)
+        self.dt = float(dt)
+        if not max_speed > 0:
+            raise UserError(f"soil.max_speed: expected a positive speed in m/s, got {max_speed!r}")
+        self.max_speed = float(max_speed)
+        self.seed = int(seed)
+        self.gravity = _vec3(gravity, "soil.gravity")
+        self.skin = SKIN_FRACTION * micro.radius if skin is None else float(skin)
+        self.use_cache = use_cache
+        self.time = 0.0
+        self.n_act = 0
+        self._entries = 0
+        self.rebuilds = 0       # neighbour-list rebuilds so far (diagnostics)
+        self._tool_names: list[str] = []
+        self._sdf_blocks: list[np.ndarray] = []
+        self._tools_host = np.zeros((dem.MAX_TOOLS, dem.T_WIDTH))
+        self._tools_dirty = True
+        self._last_impulse = np.zeros((0, 6))
+        self._prm = ti.ndarray(ti.f64, dem.N_PRM)
+        self._prm.from_numpy(self._parameters())
+        self._stat = ti.ndarray(ti.f64, dem.N_STAT)
+        self._stat.fill(0.0)
+        self._tools = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))
+        self._tool_acc = ti.ndarray(ti.f64, (dem.MAX_TOOLS, 6))
+        self._sdf = ti.ndarray(dem.vec4f, 1)
+        self._allocate(0)
+        if self.beds:
+            self._build_beds(settle_time)
+
+    # ------------------------------------------------------------------------------------------- set-up
+    def _parameters(self) -> np.ndarray:
+        m = self.micro
+        prm = np.zeros(dem.N_PRM)
+        prm[dem.P_KN] = m.k_n
+        # dashpot tuned so a collision of two mean spheres integrated with this dt rebounds with e exactly
+        prm[dem.P_DAMP] = damping_for_step(m.restitution, self.dt * math.sqrt(2.0 * m.k_n / m.particle_mass))
+        prm[dem.P_MU] = m.mu
+        prm[dem.P_MU_R] = m.mu_r
+        prm[dem.P_COH_F] = m.cohesion_force
+        prm[dem.P_COH_D] = m.cohesion_range
+        prm[dem.P_K_WALL] = m.k_wall
+        prm[dem.P_MU_WALL] = m.mu_wall
+        prm[dem.P_K_TOOL] = m.k_tool
+        prm[dem.P_MU_TOOL] = m.mu_tool
+        prm[dem.P_G:dem.P_G + 3] = self.gravity
+        prm[dem.P_DMIN:dem.P_DMIN + 3] = self.domain_min
+        prm[dem.P_DMAX:dem.P_DMAX + 3] = self.domain_max
+        prm[dem.P_CELL] = 2.0 * self.r_max + m.cohesion_range + self.skin
+        prm[dem.P_SKIN] = self.skin
+        prm[dem.P_NPITS] = len(self.beds)
+        prm[dem.P_ETA_R] = m.rolling_damping
+        prm[dem.P_KT_RATIO] = m.k_t / m.k_n
+        for k, (b_min, b_max) in enumerate(self.beds):
+            prm[dem.P_PITS + 6 * k:dem.P_PITS + 6 * k + 6] = np.concatenate([b_min, b_max])
+        return prm
+
+    def _allocate(self, n: int) -> None:
+        cap = max(n, 1)
+        table = 64
+        while table < 2 * cap:
+            table *= 2
+        self._n = n
+        self._mask = table - 1
+        nd = ti.ndarray
+        self._kin, self._kin2 = (nd(dem.vec3, (cap, 3)) for _ in range(2))
+        self._prop, self._prop2 = (nd(dem.vec4, cap) for _ in range(2))
+        self._flags, self._flags2 = (nd(ti.i32, cap) for _ in range(2))
+        self._cell, self._cell2 = (nd(ti.i64, cap) for _ in range(2))
+        self._surf_id, self._surf_id2 = (nd(ti.i32, (cap, dem.WALL_SLOTS)) for _ in range(2))
+        self._surf_h, self._surf_h2 = (nd(dem.vec6f, (cap, dem.SURF_SLOTS)) for _ in range(2))
+        self._x_ref = nd(dem.vec3, cap)
+        self._bucket = nd(ti.i32, cap)
+        self._order = nd(ti.i32, cap)
+        self._counts = nd(ti.i32, table + 1)
+        self._starts = nd(ti.i32, table + 2)
+        self._nbr_off, self._nbr_off2 = (nd(ti.i32, cap + 1) for _ in range(2))
+        self._allocate_neighbors(NEIGHBORS_PER_PARTICLE * cap)
+        self._nbr_off.fill(0)
+        self._flags.fill(0)
+        self.n_act = 0
+
+    def _allocate_neighbors(self, entries: int) -> None:
+        self._nbr_j, self._nbr_j2 = (ti.ndarray(ti.i32, max(entries, 1)) for _ in range(2))
+        self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, max(entries, 1)) for _ in range(2))
+
+    def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
+        """Replace every particle (state only; contact history starts empty) and restart the mass budget.
+
+        radii default to the soil's mean radius; masses follow from the solid density.
+        """
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        n = len(pos)
+        vel = np.zeros((n, 3)) if velocities is None else np.asarray(velocities, dtype=np.float64).reshape(n, 3)
+        omg = np.zeros((n, 3)) if angular_velocities is None else \
+            np.asarray(angular_velocities, dtype=np.float64).reshape(n, 3)
+        rad = np.full(n, self.micro.radius) if radii is None else np.asarray(radii, dtype=np.float64).reshape(n)
+        if n and (not np.all(rad > 0) or rad.max() > self.r_max * (1 + 1e-9)):
+            raise ValueError(f"radii must lie in (0, {self.r_max:g}] (the soil's largest radius)")
+        self._allocate(n)
+        if n == 0:
+            self._stat.fill(0.0)
+            return
+        mass = self.micro.solid_density * 4.0 / 3.0 * math.pi * rad ** 3
+        prop = np.stack([rad, mass, 1.0 / mass, 1.0 / (0.4 * mass * rad ** 2)], axis=1)
+        self._kin.from_numpy(np.stack([pos, vel, omg], axis=1))
+        self._prop.from_numpy(prop)
+        self._flags.fill(1)
+        dem.reset_contacts(n, self._nbr_off, self._surf_id, self._surf_h)
+        self._stat.fill(0.0)
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Sort particles by cell, drop inactive ones to the end, rebuild the neighbour lists (history kept)."""
+        n = self._n
+        if n == 0:
+            self.n_act = 0
+            return
+        self.rebuilds += 1
+        dem.bin_particles(n, self._kin, self._flags, self._cell, self._bucket, self._counts, self._prm, self._mask)
+        n_act = dem.sort_by_bucket(n, self._bucket, self._counts, self._starts, self._order, self._mask)
+        dem.gather_particles(n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
+                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
+                             self._cell2)
+        self._kin, self._kin2 = self._kin2, self._kin
+        self._prop, self._prop2 = self._prop2, self._prop
+        self._flags, self._flags2 = self._flags2, self._flags
+        self._surf_id, self._surf_id2 = self._surf_id2, self._surf_id
+        self._surf_h, self._surf_h2 = self._surf_h2, self._surf_h
+        self._cell, self._cell2 = self._cell2, self._cell
+        entries = dem.count_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._nbr_off2,
+                                      self._prm, self._mask)
+        if entries > self._nbr_j2.shape[0]:
+            # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact)
+            self._nbr_j2 = ti.ndarray(ti.i32, int(entries * 1.25) + 64)
+            self._nbr_h2 = ti.ndarray(dem.vec6f, int(entries * 1.25) + 64)
+        dem.fill_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
+                           self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
+                           self._prm, self._mask)
+        self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
+        self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
+        self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
+        self.n_act = int(n_act)
+        self._entries = int(entries)
+
+    # ------------------------------------------------------------------------------------------- beds
+    def _cache_key(self, settle_time: float) -> str:
+        spec = dict(version=SOLVER_VERSION, micro=asdict(self.micro), beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
+                    domain=(self.domain_min.tolist(), self.domain_max.tolist()), seed=self.seed, dt=self.dt,
+                    gravity=self.gravity.tolist(), settle_time=settle_time)
+        return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:32]
+
+    def _build_beds(self, settle_time: float) -> None:
+        path = cache_dir() / "dem_beds" / f"{self._cache_key(settle_time)}.npz"
+        if self.use_cache and path.is_file():
+            try:
+                self._load_state(path)
+                return
+            except (OSError, KeyError, ValueError):
+                pass  # unreadable cache entry: settle again
+        pos, rad = self._pour_lattice()
+        self.set_particles(pos, radii=rad)
+        self._settle(settle_time)
+        if self.use_cache:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{np.random.randint(1 << 30)}.npz")
+            self._save_state(tmp)
+            tmp.replace(path)
+
+    def _pour_lattice(self) -> tuple[np.ndarray, np.ndarray]:
+        """Jittered cubic lattice over each pit, tall enough that the settled bed overfills it a little."""
+        rng = np.random.default_rng(self.seed)
+        r, r_max = self.micro.radius, self.r_max
+        s = 2.0 * r_max * POUR_GAP
+        v_mean = 4.0 / 3.0 * math.pi * r ** 3 * (1.0 + self.micro.polydispersity ** 2)  # E[r^3] ~ r^3 (1 + p^2)
+        positions = []
+        for i, (b_min, b_max) in enumerate(self.beds):
+            inner_lo = b_min + r_max * 1.02
+            inner_hi = b_max - r_max * 1.02
+            nx, ny = (np.floor((inner_hi[:2] - inner_lo[:2]) / s).astype(int) + 1)
+            target = 0.66 * np.prod(b_max - b_min) / v_mean  # settles at ~0.6: fill ~10% over, trim later
+            layers = int(math.ceil(target / (nx * ny)))
+            top = inner_lo[2] + (layers - 1) * s
+            if top > self.domain_max[2] - r_max:
+                raise UserError(f"soil.domain.max: z = {self.domain_max[2]:g} leaves no room to pour soil.bed[{i}] "
+                                f"(its particles start up to z = {top + r_max:.3g})")
+            xs = inner_lo[0] + s * np.arange(nx) + (inner_hi[0] - inner_lo[0] - s * (nx - 1)) / 2
+            ys = inner_lo[1] + s * np.arange(ny) + (inner_hi[1] - inner_lo[1] - s * (ny - 1)) / 2
+            zs = inner_lo[2] + s * np.arange(layers)
+            grid = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1).reshape(-1, 3)
+            jitter = rng.uniform(-1.0, 1.0, grid.shape) * (0.5 * (s - 2.0 * r_max))
+            positions.append(grid + jitter)
+        pos = np.concatenate(positions)
+        rad = r * (1.0 + self.micro.polydispersity * rng.uniform(-1.0, 1.0, len(pos)))
+        return pos, rad
+
+    def _settle(self, settle_time: float) -> None:
+        """Let the poured lattice fall and come to rest, trim it level with the bed tops, rest again."""
+        fall = max(float(np.max(self.particles()["positions"][:, 2])) - min(b[0][2] for b in self.beds), 0.0)
+        t_fall = math.sqrt(2.0 * fall / GRAVITY) + 0.05
+        quiet = 0.02 * math.sqrt(GRAVITY * self.micro.radius)  # max speed considered at rest
+        # pour without friction, rolling resistance or cohesion: the spheres pack densely (~0.6 solid fraction,
+        # which the solid density assumes) instead of freezing in a loose, arched arrangement
+        loose = self._parameters()
+        loose[[dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]] = 0.0
+        self._prm.from_numpy(loose)
+        self._run_until_quiet(max(0.6 * settle_time, 1e-3), t_fall, quiet, SETTLE_DAMPING)
+        self._prm.from_numpy(self._parameters())
+        self._trim_to_beds()
+        self._run_until_quiet(max(0.3 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
+        self._run_until_quiet(max(0.1 * settle_time, 1e-3), 0.0, quiet, 0.0)
+        kin = self._kin.to_numpy()
+        kin[:, 1:] = 0.0
+        self._kin.from_numpy(kin)
+        self._stat.fill(0.0)
+        self.time = 0.0
+        self._rebuild()  # sorted for the final positions: a reload (which rebuilds) gets the same order
+
+    def _run_until_quiet(self, limit: float, at_least: float, quiet: float, damping: float) -> None:
+        chunk = max(1, int(round(0.01 / self.dt)))
+        elapsed = 0.0
+        while elapsed < limit:
+            for _ in range(chunk):
+                self._substep(self.dt, damping)
+            elapsed += chunk * self.dt
+            if elapsed >= at_least and self._totals()[5] < quiet:
+                break
+
+    def _trim_to_beds(self) -> None:
+        """Remove particles standing above their bed's top (z + r > top), so each bed is level and full."""
+        flags = self._flags.to_numpy()
+        kin = self._kin.to_numpy()
+        top = np.full(len(flags), -np.inf)
+        for b_min, b_max in self.beds:
+            inside = np.all((kin[:, 0, :2] >= b_min[:2]) & (kin[:, 0, :2] <= b_max[:2]), axis=1)
+            top[inside] = b_max[2]
+        rad = self._prop.to_numpy()[:, 0]
+        flags[kin[:, 0, 2] + rad > top] = 0
+        self._flags.from_numpy(flags)
+        self._rebuild()
+
+    _STATE = ("kin", "prop", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h")
+
+    def _save_state(self, path) -> None:
+        """Active particles with their contact history (after a rebuild they are the first n_act)."""
+        n, e = self.n_act, self._entries
+        size = dict(nbr_off=n + 1, nbr_j=e, nbr_h=e)
+        arrays = {name: getattr(self, "_" + name).to_numpy()[:size.get(name, n)] for name in self._STATE}
+        np.savez(path, **arrays)
+
+    def _load_state(self, path) -> None:
+        with np.load(path) as f:
+            arrays = {name: f[name] for name in self._STATE}
+        n = len(arrays["kin"])
+        self._allocate(n)
+        if len(arrays["nbr_j"]) > self._nbr_j.shape[0]:
+            self._allocate_neighbors(len(arrays["nbr_j"]))
+        for name, value in arrays.items():
+            target = getattr(self, "_" + name)
+            full = target.to_numpy()
+            full[:len(value)] = value
+            target.from_numpy(full)
+        self._flags.fill(1)
+        self._stat.fill(0.0)
+        self._rebuild()
+
+    # ------------------------------------------------------------------------------------------- tools
+    def add_tool(self, name: str, mesh, *, spacing: float | None = None) -> int:
+        """Register a rigid tool by its mesh (link frame). Returns its index. It acts once its state is set."""
+        if len(self._tool_names) >= dem.MAX_TOOLS:
+            raise UserError(f"tools: at most {dem.MAX_TOOLS} soil-touching tools, cannot add {name!r}")
+        h = 0.5 * self.micro.radius if spacing is None else float(spacing)
+        margin = 2.0 * self.r_max + 2.0 * h
+        grid = tool_sdf(mesh, h, margin, name=name, use_cache=self.use_cache)
+        offset = sum(len(b) for b in self._sdf_blocks)
+        self._sdf_blocks.append(grid.data.reshape(-1, 4))
+        data = np.concatenate(self._sdf_blocks)
+        self._sdf = ti.ndarray(dem.vec4f, len(data))
+        self._sdf.from_numpy(data)
+        i = len(self._tool_names)
+        self._tool_names.append(name)
+        row = self._tools_host[i]
+        row[:] = 0.0
+        row[dem.T_OFF] = offset
+        row[dem.T_NX:dem.T_NX + 3] = grid.shape
+        row[dem.T_ORG:dem.T_ORG + 3] = grid.origin
+        row[dem.T_H] = grid.spacing
+        row[dem.T_ROT:dem.T_ROT + 9] = np.eye(3).ravel()
+        self._tools_dirty = True
+        return i
+
+    @property
+    def tool_names(self) -> list[str]:
+        return list(self._tool_names)
+
+    def set_tool_state(self, i: int, position, quat_xyzw, lin_vel, ang_vel) -> None:
+        """Pose of tool i's link origin (world) and its linear and angular velocity, at the start of advance()."""
+        if not 0 <= i < len(self._tool_names):
+            raise IndexError(f"no tool {i}; {len(self._tool_names)} registered")
+        row = self._tools_host[i]
+        row[dem.T_ON] = 1.0
+        row[dem.T_POS:dem.T_POS + 3] = np.asarray(position, dtype=np.float64)
+        row[dem.T_ROT:dem.T_ROT + 9] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix().ravel()
+        row[dem.T_VEL:dem.T_VEL + 3] = np.asarray(lin_vel, dtype=np.float64)
+        row[dem.T_ANG:dem.T_ANG + 3] = np.asarray(ang_vel, dtype=np.float64)
+        self._tools_dirty = True
+
+    def tool_pose(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Current position and rotation matrix of tool i (moved kinematically by advance())."""
+        row = self._tools_host[i]
+        return row[dem.T_POS:dem.T_POS + 3].copy(), row[dem.T_ROT:dem.T_ROT + 9].reshape(3, 3).copy()
+
+    # ------------------------------------------------------------------------------------------- stepping
+    def _substep(self, h: float, damping: float) -> None:
+        """One soil substep (forces, integration, tools moved); rebuild the neighbour lists when needed."""
+        args = (self.n_act, self._kin, self._kin2, self._prop, self._flags, self._x_ref, self._nbr_off, self._nbr_j,
+                self._nbr_h, self._surf_id, self._surf_h, self._tools, self._tool_acc, self._sdf, self._prm,
+                self._stat, h, damping)
+        graph = _substep_graph()
+        if graph is not None:
+            graph.run(dict(zip(_STEP_ARGS, args)))
+            disp2 = self._stat[dem.S_DISP2]
+        else:
+            disp2 = dem.step(*args)
+        self._kin, self._kin2 = self._kin2, self._kin
+        if disp2 > 0.25 * self.skin * self.skin:
+            self._rebuild()
+
+    def advance(self, duration: float) -> np.ndarray:
+        """Advance by `duration` in n = ceil(duration / dt) equal substeps, tools moving kinematically.
+
+        Returns (n_tools, 6): time-averaged force and torque (about each link origin) that the soil exerts on
+        each tool over the call, world frame. Raises DivergenceError if a particle became non-finite or faster
+        than max_speed.
+        """
+        if not duration > 0:
+            raise ValueError(f"duration must be positive, got {duration!r}")
+        n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
+        h = duration / n_sub
+        if self._tools_dirty:
+            self._tools.from_numpy(self._tools_host)
+            self._tools_dirty = False
+        self._tool_acc.fill(0.0)
+        self._stat[dem.S_SPEED2] = 0.0
+        self._stat[dem.S_NONFINITE] = 0.0
+        for _ in range(n_sub):
+            self._substep(h, 0.0)
+        self.time += duration
+        n_tools = len(self._tool_names)
+        if n_tools:
+            self._tools_host = self._tools.to_numpy()
+        acc = self._tool_acc.to_numpy()[:n_tools]
+        self._last_impulse = acc * h
+        self._check_divergence()
+        return acc / n_sub
+
+    @property
+    def last_tool_impulse(self) -> np.ndarray:
+        """(n_tools, 6) impulse and angular impulse (about the moving link origin) of the last advance()."""
+        return self._last_impulse.copy()
+
+    def _check_divergence(self) -> None:
+        stat = self._stat.to_numpy()
+        if stat[dem.S_NONFINITE] > 0:
+            raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: {int(stat[dem.S_NONFINITE])} particles "
+                                  f"have a non-finite state (sim.soil_dt or the soil stiffness is unstable)")
+        speed = math.sqrt(stat[dem.S_SPEED2])
+        if speed > self.max_speed:
+            raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: particle speed {speed:.3g} m/s above "
+                                  f"the limit {self.max_speed:g} m/s (soil.max_speed)")
+
+    # ------------------------------------------------------------------------------------------- outputs
+    def _totals(self) -> np.ndarray:
+        out = ti.ndarray(ti.f64, 8)
+        if self.n_act == 0:
+            return np.zeros(8)
+        dem.totals(self.n_act, self._kin, self._prop, self._flags, out)
+        return out.to_numpy()
+
+    @property
+    def n_particles(self) -> int:
+        return self.n_act
+
+    @property
+    def neighbor_entries(self) -> int:
+        """Entries in the neighbour lists (each pair counted from both sides)."""
+        return self._entries
+
+    @property
+    def particle_mass(self) -> float | np.ndarray:
+        """Mass of each active particle (a float when they are all equal)."""
+        masses = self.particles()["masses"]
+        if len(masses) and np.all(masses == masses[0]):
+            return float(masses[0])
+        return masses
+
+    def mass_budget(self) -> dict[str, float]:
+        """Soil mass in kg: in active particles, and booked out of the domain since the soil was built."""
+        return {"particles": float(self._totals()[0]), "out_of_domain": float(self._stat[dem.S_LOST_MASS])}
+
+    def momentum(self) -> np.ndarray:
+        """Total linear momentum of the active particles, kg m/s."""
+        return self._totals()[1:4].copy()
+
+    def kinetic_energy(self) -> float:
+        """Translational plus rotational kinetic energy of the active particles, J."""
+        return float(self._totals()[4])
+
+    def particles(self) -> dict[str, np.ndarray]:
+        """Copies of the active particles' state (for recorders and tests; not for every step)."""
+        n = self.n_act
+        if n == 0:
+            empty = np.zeros((0, 3))
+            return dict(positions=empty, velocities=empty, angular_velocities=empty, radii=np.zeros(0),
+                        masses=np.zeros(0))
+        kin = self._kin.to_numpy()[:n]
+        prop = self._prop.to_numpy()[:n]
+        active = self._flags.to_numpy()[:n] == 1
+        return dict(positions=kin[active, 0], velocities=kin[active, 1], angular_velocities=kin[active, 2],
+                    radii=prop[active, 0], masses=prop[active, 1])
+
+    def static_ground(self, x_axis: np.ndarray, y_axis: np.ndarray) -> np.ndarray:
+        """Height of the static ground on a grid: 0, or the pit floor where the pit's footprint holds the node."""
+        gx, gy = np.meshgrid(np.asarray(x_axis, float), np.asarray(y_axis, float), indexing="ij")
+        ground = np.zeros(gx.shape)
+        for b_min, b_max in reversed(self.beds):  # the first bed wins where footprints touch, as in the kernel
+            inside = (gx >= b_min[0]) & (gx <= b_max[0]) & (gy >= b_min[1]) & (gy <= b_max[1])
+            ground[inside] = b_min[2]
+        return ground
+
+    def heightmap(self, x_axis: np.ndarray, y_axis: np.ndarray) -> np.ndarray:
+        """Terrain height on the grid (x_axis, y_axis are uniformly spaced cell centres): the highest particle
+        top (z + r) of the particles centred in each cell, or the static ground where a cell holds none."""
+        x_axis = np.asarray(x_axis, dtype=np.float64).ravel()
+        y_axis = np.asarray(y_axis, dtype=np.float64).ravel()
+        spacing = []
+        for name, axis in (("x_axis", x_axis), ("y_axis", y_axis)):
+            if len(axis) == 0:
+                raise ValueError(f"{name} is empty")
+            step = axis[1] - axis[0] if len(axis) > 1 else 1.0
+            if not step > 0 or (len(axis) > 2 and not np.allclose(np.diff(axis), step, rtol=1e-6, atol=0.0)):
+                raise ValueError(f"{name} must be increasing and uniformly spaced")
+            spacing.append(step)
+        height = ti.ndarray(ti.f64, (len(x_axis), len(y_axis)))
+        height.fill(-np.inf)
+        if self.n_act:
+            dem.surface_height(self.n_act, self._kin, self._prop, self._flags, height, x_axis[0], spacing[0],
+                               y_axis[0], spacing[1])
+        z = height.to_numpy()
+        return np.where(np.isfinite(z), z, self.static_ground(x_axis, y_axis))
+
+    def mass_in_box(self, position, quat_xyzw, box_min, box_max) -> float:
+        """Mass of the particles whose centre, in the frame (position, quat_xyzw), lies in the box [min, max].
+
+        E.g. the soil carried in a bucket: the bucket link's pose and a box around its cavity.
+        """
+        if self.n_act == 0:
+            return 0.0
+        rot = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix()
+        return float(dem.mass_in_box(self.n_act, self._kin, self._prop, self._flags,
+                                     ti.Vector(np.asarray(position, dtype=np.float64).tolist(), ti.f64),
+                                     ti.Matrix(rot.tolist(), ti.f64),
+                                     ti.Vector(np.asarray(box_min, dtype=np.float64).tolist(), ti.f64),
+                                     ti.Vector(np.asarray(box_max, dtype=np.float64).tolist(), ti.f64)))

@@ -1,0 +1,284 @@
+"""Soil parameters: presets, user overrides, and the bulk -> DEM micro-parameter mapping.
+
+Users give bulk properties (what a soil report lists); the DEM kernels need contact parameters. The mapping is
+in `bulk_to_micro` and is deliberately simple and documented so the validation studies can calibrate it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from .errors import UserError
+
+GRAVITY = 9.81
+SOLID_FRACTION = 0.6      # packing fraction of a settled bed; solid density = bulk density / 0.6
+COORDINATION = 6.0        # mean contacts per particle in Rumpf's strength formula
+STIFFNESS_SCALE = 1.0     # k_n = STIFFNESS_SCALE * E * 2R (a regular packing's modulus is ~ k_n / 2R)
+OVERLAP_RULE = 100.0      # k_n >= 100 rho g H d keeps the mean overlap under the bed's weight below ~1% of R
+COHESION_RANGE = 0.1      # cohesive band D = 0.1 R beyond contact
+STEP_FRACTION = 15.0      # dt_limit = t_c / 15
+ROLLING_DAMPING = 0.3     # EPSD viscous rolling damping ratio while the rolling spring is elastic
+TANGENTIAL_RATIO = 2.0 / 7.0
+WALL_STIFFNESS_RATIO = 2.0   # ground, walls and tools: k = 2 k_n, the same surface compliance as a sphere
+
+# Rolling resistance needed for a heap of spheres (particle friction tan(phi)) to stand at phi.
+# (friction angle in degrees, mu_r) measured with tests/test_dem_heap.py-style cylinder lifts.
+ROLLING_CALIBRATION = ((20.0, 0.05), (33.0, 0.15), (45.0, 0.30))
+
+PRESETS: dict[str, dict] = {
+    # dry sand, soil.md: 1474-1700 kg/m3, 32-35 deg, repose 30-35 deg
+    "sand": dict(density=1600.0, friction_angle=math.radians(33.0), cohesion=0.0, youngs_modulus=1.0e7,
+                 restitution=0.5, radius=0.02),
+    # AGX Terrain dirt_1 as used by OperaSim-AGX
+    "dirt": dict(density=1474.0, friction_angle=0.6978, cohesion=2100.0, youngs_modulus=6.5e6,
+                 restitution=0.5, radius=0.02),
+    # AGX gravel reference friction; E as for sand
+    "gravel": dict(density=1474.0, friction_angle=0.76, cohesion=0.0, youngs_modulus=1.0e7,
+                   restitution=0.5, radius=0.02),
+    # compacted Kanto loam fill (Japan Highway earthwork manual 1983); E is not tabulated, 5 MPa assumed
+    "kanto_loam": dict(density=1400.0, friction_angle=math.radians(20.0), cohesion=10000.0,
+                       youngs_modulus=5.0e6, restitution=0.3, radius=0.02),
+    # Lajeunesse et al. 2004 ballotini: bulk 1500, solid 2450 (fraction 0.61), repose 22 deg
+    "glass_beads": dict(density=1500.0, friction_angle=math.radians(22.0), cohesion=0.0, youngs_modulus=1.0e7,
+                        restitution=0.9, radius=0.02),
+}
+
+
+@dataclass
+class SoilBulk:
+    """Bulk soil properties, as a user gives them (SI units, radians)."""
+
+    density: float            # bulk density, kg/m3
+    friction_angle: float     # internal friction angle, rad
+    cohesion: float           # Pa
+    youngs_modulus: float     # Pa
+    restitution: float        # coefficient of restitution, 0 < e <= 1
+    radius: float             # mean particle radius, m
+    rolling_resistance: float | None = None   # None -> ROLLING_CALIBRATION at this friction angle
+    tool_friction_angle: float | None = None  # soil-tool friction angle; None -> 2/3 of friction_angle
+    polydispersity: float = 0.1               # radii uniform in R (1 +- polydispersity), against crystallisation
+
+
+@dataclass(frozen=True)
+class SoilMicro:
+    """What the DEM kernels get. Stiffnesses N/m, forces N, lengths m, masses kg."""
+
+    radius: float             # mean particle radius
+    polydispersity: float
+    solid_density: float      # kg/m3 of the spheres themselves
+    particle_mass: float      # mass of a sphere of the mean radius
+    k_n: float                # particle-particle normal stiffness
+    k_t: float                # tangential stiffness (2/7 k_n)
+    damping: float            # gamma_n = damping * sqrt(m_eff k): restitution `restitution` for any m_eff
+    restitution: float
+    mu: float                 # particle-particle friction coefficient
+    mu_r: float               # rolling resistance coefficient (EPSD)
+    rolling_damping: float    # EPSD rolling damping ratio
+    cohesion_force: float     # F: attraction at contact
+    cohesion_range: float     # D: attraction falls linearly to zero at this surface gap
+    k_wall: float             # ground and pit walls
+    mu_wall: float
+    k_tool: float
+    mu_tool: float
+    dt_limit: float           # stable substep
+    youngs_modulus: float     # kept for messages
+    bulk_density: float
+
+
+_ALLOWED = ("density", "friction_angle", "friction_angle_deg", "cohesion", "youngs_modulus", "restitution",
+            "radius", "rolling_resistance", "tool_friction_angle", "tool_friction_angle_deg", "polydispersity")
+
+
+def _number(key: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise UserError(f"soil.overrides.{key}: expected a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise UserError(f"soil.overrides.{key}: expected a finite number, got {value}")
+    return value
+
+
+def _check(key: str, ok: bool, allowed: str, value) -> None:
+    if not ok:
+        raise UserError(f"soil.overrides.{key}: expected {allowed}, got {value:g}")
+
+
+def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
+    """Preset values with the user's overrides applied and checked (UserError naming the key)."""
+    if preset not in PRESETS:
+        raise UserError(f"soil.preset: expected one of {', '.join(sorted(PRESETS))}, got {preset!r}")
+    if overrides is None:
+        overrides = {}
+    if not isinstance(overrides, dict):
+        raise UserError(f"soil.overrides: expected a mapping of keys to numbers, got {type(overrides).__name__}")
+    values = dict(PRESETS[preset])
+    for key in overrides:
+        if key not in _ALLOWED:
+            raise UserError(f"soil.overrides.{key}: unknown key; allowed: {', '.join(_ALLOWED)}")
+    for base in ("friction_angle", "tool_friction_angle"):
+        if base in overrides and base + "_deg" in overrides:
+            raise UserError(f"soil.overrides.{base}_deg: give {base} (rad) or {base}_deg, not both")
+    for key, raw in overrides.items():
+        if key in ("rolling_resistance", "tool_friction_angle", "tool_friction_angle_deg") and raw is None:
+            values[key.removesuffix("_deg")] = None
+            continue
+        v = _number(key, raw)
+        if key == "density":
+            _check(key, 0.0 < v <= 2.0e4, "0 < density <= 20000 kg/m3", v)
+        elif key == "friction_angle":
+            _check(key, 0.0 < v < math.pi / 2, "0 < angle < pi/2 rad", v)
+        elif key == "friction_angle_deg":
+            _check(key, 0.0 < v < 90.0, "0 < angle < 90 degrees", v)
+            key, v = "friction_angle", math.radians(v)
+        elif key == "cohesion":
+            _check(key, v >= 0.0, "cohesion >= 0 Pa", v)
+        elif key == "youngs_modulus":
+            _check(key, v > 0.0, "youngs_modulus > 0 Pa", v)
+        elif key == "restitution":
+            _check(key, 0.0 < v <= 1.0, "0 < restitution <= 1", v)
+        elif key == "radius":
+            _check(key, 0.0 < v <= 1.0, "0 < radius <= 1 m", v)
+        elif key == "rolling_resistance":
+            _check(key, 0.0 <= v <= 1.0, "0 <= rolling_resistance <= 1", v)
+        elif key == "tool_friction_angle":
+            _check(key, 0.0 <= v < math.pi / 2, "0 <= angle < pi/2 rad", v)
+        elif key == "tool_friction_angle_deg":
+            _check(key, 0.0 <= v < 90.0, "0 <= angle < 90 degrees", v)
+            key, v = "tool_friction_angle", math.radians(v)
+        elif key == "polydispersity":
+            _check(key, 0.0 <= v <= 0.3, "0 <= polydispersity <= 0.3", v)
+        values[key] = v
+    return SoilBulk(**values)
+
+
+def calibrated_rolling_resistance(friction_angle: float) -> float:
+    """Rolling resistance for spheres with mu = tan(phi) to heap at phi (linear in the calibration table)."""
+    deg = math.degrees(friction_angle)
+    table = ROLLING_CALIBRATION
+    if deg <= table[0][0]:
+        return table[0][1]
+    for (a0, m0), (a1, m1) in zip(table, table[1:]):
+        if deg <= a1:
+            return m0 + (m1 - m0) * (deg - a0) / (a1 - a0)
+    return table[-1][1]
+
+
+def damping_factor(restitution: float) -> float:
+    """c in gamma_n = c sqrt(m_eff k): 2 (-ln e) / sqrt(pi^2 + ln^2 e) gives restitution e."""
+    if restitution >= 1.0:
+        return 0.0
+    log_e = math.log(restitution)
+    return 2.0 * -log_e / math.sqrt(math.pi ** 2 + log_e ** 2)
+
+
+def _discrete_restitution(c: float, omega_dt: float, phases: int = 8) -> float:
+    """Restitution of a linear spring-dashpot collision integrated as the kernels do (symplectic Euler, dashpot on
+    the previous velocity), in units where omega0 = 1 and the impact speed is 1, averaged over impact phases."""
+    total = 0.0
+    for k in range(phases):
+        u = -1.0
+        overlap = omega_dt * (k + 0.5) / phases  # first step with overlap > 0
+        for _ in range(int(100.0 / omega_dt) + 10):  # a collision lasts ~pi / omega0
+            u += omega_dt * (overlap - c * u)
+            overlap -= omega_dt * u
+            if overlap <= 0.0:
+                break
+        total += u
+    return total / phases
+
+
+def damping_for_step(restitution: float, omega_dt: float) -> float:
+    """Damping factor c (gamma = c sqrt(m_eff k)) whose collision, integrated with step dt (omega_dt =
+    dt sqrt(k/m_eff)), rebounds with exactly `restitution`. The continuous formula (damping_factor) lags by
+    half a step, which lowers e at t_c/15 for strong damping (~0.28 instead of 0.3 on average; a single
+    collision still varies by ~10% with the phase of impact at the step, less for larger e)."""
+    if restitution >= 1.0:
+        return 0.0
+    lo, hi = 0.0, 2.0 * max(damping_factor(restitution), 0.05)
+    while _discrete_restitution(hi, omega_dt) > restitution and hi < 50.0:
+        hi *= 2.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if _discrete_restitution(mid, omega_dt) > restitution:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def contact_duration(k: float, m_eff: float, damping: float) -> float:
+    """t_c = pi / sqrt(k/m_eff - (gamma/2 m_eff)^2) (soil.md), damping ratio capped at 0.8 so very low
+    restitution (near-critical damping) cannot stretch it without bound."""
+    zeta = min(damping / 2.0, 0.8)  # gamma / (2 sqrt(m k)) = damping / 2
+    omega0 = math.sqrt(k / m_eff)
+    return math.pi / (omega0 * math.sqrt(1.0 - zeta * zeta))
+
+
+def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
+    """Map bulk properties to DEM contact parameters.
+
+    - Spheres of mean radius R, radii uniform in R (1 +- polydispersity). Solid density rho_s = rho / 0.6
+      (SOLID_FRACTION: a settled bed of spheres packs at ~0.6), so a bed has the user's bulk density.
+    - Normal stiffness k_n = E * 2R (STIFFNESS_SCALE = 1; a packing's modulus is ~ k_n / 2R), raised if needed
+      to the overlap rule k_n >= 100 rho g H d (H = bed_depth, d = 2R) so overlaps under the bed's own weight
+      stay below ~1% of R. Ground, walls and tools use 2 k_n (a wall has the surface compliance of one sphere).
+    - Damping gamma_n = c sqrt(m_eff k), c = 2(-ln e)/sqrt(pi^2 + ln^2 e): restitution e for every pair.
+    - Tangential spring k_t = 2/7 k_n (same period as the normal one) with history, Coulomb cap mu F_n,
+      mu = tan(phi). Rolling resistance (EPSD, type C): mu_r from ROLLING_CALIBRATION so that a heap of
+      these spheres stands at about phi (spheres without it heap at ~20 deg whatever mu).
+    - Cohesion: Rumpf sigma_t = phi_s Z F / (pi d^2) with phi_s = 0.6, Z = 6, and Mohr-Coulomb
+      c = sigma_t tan(phi), so F = c pi d^2 / (phi_s Z tan(phi)); attraction F at contact, falling linearly
+      to 0 at a gap D = 0.1 R.
+    - Tool friction mu_tool = tan(delta), delta = 2/3 phi unless given; ground friction = mu (rough floor).
+    - dt_limit = t_c / 15 for the lightest pair (both spheres at the smallest radius), with
+      t_c = pi / sqrt(k/m_eff - (gamma/2m_eff)^2).
+    """
+    radius = bulk.radius
+    solid_density = bulk.density / SOLID_FRACTION
+    diameter = 2.0 * radius
+    k_n = max(STIFFNESS_SCALE * bulk.youngs_modulus * diameter,
+              OVERLAP_RULE * bulk.density * GRAVITY * bed_depth * diameter)
+    mu = math.tan(bulk.friction_angle)
+    mu_r = bulk.rolling_resistance
+    if mu_r is None:
+        mu_r = calibrated_rolling_resistance(bulk.friction_angle)
+    delta = bulk.tool_friction_angle
+    if delta is None:
+        delta = 2.0 / 3.0 * bulk.friction_angle
+    cohesion_force = 0.0
+    cohesion_range = 0.0
+    if bulk.cohesion > 0.0:
+        cohesion_force = bulk.cohesion * math.pi * diameter ** 2 / (SOLID_FRACTION * COORDINATION * mu)
+        cohesion_range = COHESION_RANGE * radius
+    damping = damping_factor(bulk.restitution)
+    r_min = radius * (1.0 - bulk.polydispersity)
+    m_min = solid_density * 4.0 / 3.0 * math.pi * r_min ** 3
+    t_c = contact_duration(k_n, 0.5 * m_min, damping)
+    return SoilMicro(
+        radius=radius, polydispersity=bulk.polydispersity, solid_density=solid_density,
+        particle_mass=solid_density * 4.0 / 3.0 * math.pi * radius ** 3,
+        k_n=k_n, k_t=TANGENTIAL_RATIO * k_n, damping=damping, restitution=bulk.restitution,
+        mu=mu, mu_r=mu_r, rolling_damping=ROLLING_DAMPING,
+        cohesion_force=cohesion_force, cohesion_range=cohesion_range,
+        k_wall=WALL_STIFFNESS_RATIO * k_n, mu_wall=mu,
+        k_tool=WALL_STIFFNESS_RATIO * k_n, mu_tool=math.tan(delta),
+        dt_limit=t_c / STEP_FRACTION, youngs_modulus=bulk.youngs_modulus, bulk_density=bulk.density)
+
+
+def check_dt(micro: SoilMicro, dt: float) -> None:
+    """UserError when a soil substep is not positive or above the stability limit of this soil."""
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
+        raise UserError(f"sim.soil_dt: expected a positive number of seconds, got {dt!r}")
+    if dt > micro.dt_limit * (1.0 + 1e-9):
+        raise UserError(f"sim.soil_dt: {dt:.3g} s is above the stability limit {micro.dt_limit:.3g} s of this "
+                        f"soil (radius {micro.radius:g} m, youngs_modulus {micro.youngs_modulus:.3g} Pa)")
+
+
+def micro_summary(micro: SoilMicro) -> dict:
+    """Plain dict of the micro-parameters (for manifests and cache keys)."""
+    return asdict(micro)
+
+
+__all__ = ["PRESETS", "SoilBulk", "SoilMicro", "resolve_soil", "bulk_to_micro", "check_dt",
+           "calibrated_rolling_resistance", "damping_factor", "damping_for_step", "contact_duration", "micro_summary",
+           "SOLID_FRACTION", "GRAVITY"]

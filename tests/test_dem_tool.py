@@ -1,0 +1,159 @@
+"""Tool signed distance grids and particle-tool contact: geometry, statics, Newton's third law, kinematics."""
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from opera_taichi.backend import current_arch, init_taichi
+from opera_taichi.soil import bulk_to_micro, resolve_soil
+from opera_taichi.tool_sdf import build_sdf, tool_sdf
+
+
+@pytest.fixture(scope="module", autouse=True)
+def taichi_cpu():
+    if current_arch() is None:
+        init_taichi("cpu")
+
+
+def make_soil(gravity=(0.0, 0.0, -9.81), **over):
+    from opera_taichi.dem_soil import DemSoil
+
+    overrides = {"radius": 0.02, "youngs_modulus": 2e6}
+    overrides.update(over)
+    micro = bulk_to_micro(resolve_soil("sand", overrides))
+    return DemSoil(micro, domain_min=(-2, -2, -1), domain_max=(2, 2, 3), beds=[], gravity=gravity)
+
+
+def container_mesh(inner=0.3, height=0.2, wall=0.02):
+    """Open-top box of five plates (each a watertight body): floor top at z = 0.01 in the link frame."""
+    half = inner / 2 + wall / 2
+    parts = [trimesh.creation.box([inner + 2 * wall, inner + 2 * wall, wall])]
+    for sx, sy, ex, ey in [(1, 0, wall, inner + 2 * wall), (-1, 0, wall, inner + 2 * wall),
+                           (0, 1, inner, wall), (0, -1, inner, wall)]:
+        plate = trimesh.creation.box([ex, ey, height])
+        plate.apply_translation([sx * half, sy * half, wall / 2 + height / 2])
+        parts.append(plate)
+    return trimesh.util.concatenate(parts)
+
+
+def test_box_sdf_is_exact_near_faces_and_signed():
+    box = trimesh.creation.box([0.4, 0.3, 0.1])
+    h = 0.01
+    grid = build_sdf(box, h, 0.05)
+    rng = np.random.default_rng(0)
+    # points over the +z face, away from its edges: the exact SDF is linear there, trilinear sampling is exact
+    pts = np.column_stack([rng.uniform(-0.15, 0.15, 200), rng.uniform(-0.1, 0.1, 200), rng.uniform(0.02, 0.09, 200)])
+    dist, grad = grid.sample(pts)
+    assert np.allclose(dist, pts[:, 2] - 0.05, atol=1e-6)
+    assert np.allclose(grad, [0, 0, 1], atol=1e-6)
+    # anywhere near the box, within a fraction of a cell of the exact signed distance (negative inside)
+    pts = rng.uniform([-0.24, -0.19, -0.09], [0.24, 0.19, 0.09], (2000, 3))
+    q = np.abs(pts) - [0.2, 0.15, 0.05]
+    exact = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+    dist, grad = grid.sample(pts)
+    near = exact < 0.045  # distances are exact within the band (the 0.05 margin), clamped beyond
+    assert np.abs(dist - exact)[near].max() < 0.25 * h
+    assert np.all(dist[~near] > 0.04)
+    assert np.all(np.sign(dist[np.abs(exact) > h]) == np.sign(exact[np.abs(exact) > h]))
+    outside = near & (exact > 0)  # interpolated unit normals fan out around edges, never cancel outside
+    assert np.all(np.linalg.norm(grad[outside], axis=1) > 0.5)
+
+
+def test_open_sheet_becomes_a_thin_plate():
+    quad = trimesh.Trimesh(vertices=[[-0.2, -0.2, 0], [0.2, -0.2, 0], [0.2, 0.2, 0], [-0.2, 0.2, 0]],
+                           faces=[[0, 1, 2], [0, 2, 3]])
+    assert not quad.is_watertight
+    h = 0.01
+    grid = build_sdf(quad, h, 0.05)
+    z = np.linspace(-0.04, 0.04, 9)
+    dist, grad = grid.sample(np.column_stack([np.zeros(9) + 0.013, np.zeros(9) - 0.021, z]))
+    assert np.allclose(dist, np.abs(z) - h, atol=0.15 * h)
+    assert np.allclose(grad[z > h, 2], 1, atol=1e-3) and np.allclose(grad[z < -h, 2], -1, atol=1e-3)
+
+
+def test_sdf_cache_returns_the_same_grid(tmp_path, monkeypatch):
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    mesh = trimesh.creation.box([0.2, 0.2, 0.2])
+    first = tool_sdf(mesh, 0.02, 0.05)
+    assert len(list((tmp_path / "sdf").glob("*.npz"))) == 1
+    second = tool_sdf(mesh, 0.02, 0.05)
+    assert np.array_equal(first.data, second.data) and np.array_equal(first.origin, second.origin)
+    tool_sdf(mesh, 0.025, 0.05)
+    assert len(list((tmp_path / "sdf").glob("*.npz"))) == 2
+
+
+def test_particle_rests_on_a_tilted_plate_tool():
+    """Contact through the SDF of a rotated tool: a sphere settles on the plate with < 1% of r overlap."""
+    soil = make_soil(friction_angle_deg=40)
+    plate = trimesh.creation.box([0.6, 0.6, 0.04])
+    t = soil.add_tool("plate", plate)
+    tilt = Rotation.from_euler("y", 10, degrees=True)
+    soil.set_tool_state(t, [0, 0, 0.5], tilt.as_quat(), [0, 0, 0], [0, 0, 0])
+    r = soil.micro.radius
+    normal = tilt.apply([0, 0, 1])
+    start = np.array([0, 0, 0.5]) + normal * (0.02 + r * 1.05)
+    soil.set_particles([start])
+    soil.advance(0.5)
+    x = soil.particles()["positions"][0]
+    height = np.dot(x - [0, 0, 0.5], normal)
+    assert 0 < 0.02 + r - height < 0.01 * r
+    # friction (tan 40 > tan 10) and rolling resistance hold it on the slope
+    assert np.linalg.norm(x - start) < 0.1 * r
+
+
+def test_container_tool_carries_the_weight_of_the_soil_it_holds():
+    soil = make_soil()
+    t = soil.add_tool("bin", container_mesh())
+    origin = np.array([0.1, -0.2, 0.3])
+    soil.set_tool_state(t, origin, [0, 0, 0, 1], [0, 0, 0], [0, 0, 0])
+    r = soil.micro.radius
+    axis = np.arange(-0.12, 0.121, 0.048)
+    grid = np.stack(np.meshgrid(axis, axis, 0.31 + r * 1.2 + 0.048 * np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    grid[:, 1] += 0.01 * np.sin(7 * grid[:, 0])  # break the symmetry a little
+    soil.set_particles(grid + origin * [1, 1, 0])
+    soil.advance(0.8)
+    wrench = soil.advance(0.2)[t]
+    p = soil.particles()
+    weight = p["masses"].sum() * 9.81
+    assert soil.n_particles == len(grid)
+    assert wrench[2] == pytest.approx(-weight, rel=0.05)  # the soil presses down with its weight
+    assert np.abs(wrench[:2]).max() < 0.05 * weight
+    com = (p["masses"][:, None] * p["positions"]).sum(0) / p["masses"].sum()
+    expected_torque = np.cross(com - origin, [0, 0, -weight])
+    assert np.abs(wrench[3:] - expected_torque).max() < 0.05 * weight * 0.15
+    carried = soil.mass_in_box(origin, [0, 0, 0, 1], [-0.15, -0.15, 0.0], [0.15, 0.15, 0.25])
+    assert carried == pytest.approx(p["masses"].sum(), rel=1e-12)
+
+
+def test_tool_forces_obey_newtons_third_law():
+    """No gravity, nothing else to push on: the particles' momentum change equals minus the tool impulse."""
+    soil = make_soil(gravity=(0, 0, 0), cohesion=2000.0)
+    t = soil.add_tool("plate", trimesh.creation.box([0.3, 0.3, 0.04]))
+    rng = np.random.default_rng(5)
+    r = soil.micro.radius
+    axes = [np.arange(0.05, 0.3, 2.4 * r), np.arange(-0.15, 0.15, 2.4 * r), 1.0 + np.arange(-0.15, 0.15, 2.4 * r)]
+    pos = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) + rng.uniform(-0.1, 0.1, (1, 3)) * r
+    soil.set_particles(pos, velocities=rng.normal(0, 0.05, pos.shape))
+    soil.set_tool_state(t, [-0.2, 0, 1.0], Rotation.from_euler("y", 80, degrees=True).as_quat(), [1.0, 0.0, 0.1],
+                        [0.0, 0.0, 1.0])
+    p0 = soil.momentum()
+    impulse = np.zeros(3)
+    for _ in range(20):
+        soil.advance(0.01)
+        impulse += soil.last_tool_impulse[t, :3]
+    change = soil.momentum() - p0
+    assert np.linalg.norm(change) > 1.0  # the plate did push a lot of soil
+    assert np.abs(change + impulse).max() < 1e-6 * np.linalg.norm(change)
+
+
+def test_tool_moves_kinematically_within_advance():
+    soil = make_soil()
+    t = soil.add_tool("plate", trimesh.creation.box([0.1, 0.1, 0.1]))
+    q0 = Rotation.from_euler("xyz", [0.1, -0.2, 0.3])
+    w = np.array([0.3, -0.5, 1.2])
+    soil.set_tool_state(t, [0, 0, 1], q0.as_quat(), [0.2, -0.1, 0.05], w)
+    soil.advance(0.3)
+    pos, rot = soil.tool_pose(t)
+    assert np.allclose(pos, [0.06, -0.03, 1.015], atol=1e-12)
+    expected = (Rotation.from_rotvec(w * 0.3) * q0).as_matrix()
+    assert np.allclose(rot, expected, atol=1e-10)
