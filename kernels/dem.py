@@ -10,24 +10,29 @@ accurate to the contact law, and pair forces stay exactly antisymmetric because 
 negation of the same rounded value.
 
 Data layout (n = particle capacity, E = neighbour-entry capacity):
-  kin[n, 3]     vec3 f64   position, velocity, angular velocity (two buffers: a step reads one, writes the other)
-  prop[n]       vec4 f64   radius, mass, 1/mass, 1/moment of inertia
+  kin[n, 3]     vec3 f64   position, velocity, angular velocity
+  prop[n]       vec4 f64   radius, mass, 1/mass, mass^(1/4) (pair damping without a per-pair division)
   flags[n]      i32        1 active, 0 inactive (left the domain)
   x_ref[n]      vec3 f64   position at the last neighbour build (Verlet skin criterion)
   surf_id[n, 4] i32        static face held by each wall-contact slot (-1 free)
   surf_h[n, 8]  vec6 f32   history: slots 0-3 static faces, 4-7 tools; (tangential spring, rolling spring)
-  nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  full neighbour list in CSR form (both directions of each pair,
-                the neighbours of i at nbr_off[i]..nbr_off[i+1]) and each entry's pair history
+  nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  half neighbour list in CSR form (each pair once, held by one of
+                the two, i: entries nbr_off[i]..nbr_off[i+1]) and each pair's springs (seen from i)
+  rev_off[n+1], rev_e[E]   reverse lists: the entries in which each particle is the partner, not the holder
+  pair_out[E, 2] vec3 f64  force and torque each pair puts on its partner (this substep)
+  own[n, 2]     vec3 f64   force and torque from the pairs a particle lists itself
   prm[N_PRM]    f64        model parameters and static geometry (P_* indices)
   stat[N_STAT]  f64        diagnostics written by the kernels (S_* indices)
   tools[MAX_TOOLS, T_WIDTH] f64   SDF grid placement and the current kinematic pose of each tool
   tool_acc[MAX_TOOLS, 6]    f64   force and torque (about the link origin) the soil puts on each tool
   sdf[total]    vec4 f32   all tool SDF grids back to back: distance, unit gradient (link frame)
+  partial[n/BLOCK + 1, PART_WIDTH] f64   per-block sums, added up in block order (deterministic)
 
-The neighbour list is a full list (each pair stored by both particles) so that each particle writes only its
-own force: no atomics in the hot loop and the result does not depend on thread scheduling (deterministic for a
-seed, backend and thread count). Both sides evaluate the same expressions on swapped inputs, which gives
-exactly opposite forces, so linear momentum is conserved to round-off.
+The neighbour list is a half list (each pair evaluated once, by the particle that holds it) without atomics:
+a pair adds the force on its holder to the holder's sum and writes the opposite force into a per-pair slot,
+which the partner gathers through its reverse list. Every sum has a fixed order, so results
+do not depend on thread scheduling (deterministic for a seed, backend and thread count), and the two sides of a
+pair get exactly opposite forces: linear momentum is conserved to round-off.
 """
 import taichi as ti
 
@@ -35,7 +40,7 @@ MAX_TOOLS = 4
 MAX_PITS = 16
 WALL_SLOTS = 4
 SURF_SLOTS = WALL_SLOTS + MAX_TOOLS
-BLOCK = 64  # particles per reduction block (one atomic per block, not per particle)
+BLOCK = 64  # particles per reduction block: sums per block, then added in block order
 MORTON_BITS = 21
 CELL_LIMIT = (1 << MORTON_BITS) - 2
 
@@ -58,6 +63,10 @@ P_SKIN = 20       # Verlet skin, m
 P_NPITS = 21
 P_ETA_R = 22      # rolling damping ratio (EPSD)
 P_KT_RATIO = 23   # k_t / k_n (2/7)
+P_SQRT_KN = 24    # sqrt of P_KN, P_K_WALL, P_K_TOOL
+P_SQRT_KWALL = 25
+P_SQRT_KTOOL = 26
+P_WALL_TOP = 27   # top of the pit walls: 0 (the ground), raised while a bed is poured so nothing spills
 P_PITS = 32       # pits: 6 entries each (min xyz, max xyz), MAX_PITS of them
 N_PRM = P_PITS + 6 * MAX_PITS
 
@@ -69,6 +78,12 @@ S_LOST_MASS = 3   # cumulative mass deactivated (left the domain), kg
 S_LOST_COUNT = 4  # cumulative count deactivated
 N_STAT = 8
 
+# per-block partial sums (step): tool wrenches 0..6*MAX_TOOLS-1, then these
+PART_LOST_MASS = 6 * MAX_TOOLS
+PART_LOST_COUNT = PART_LOST_MASS + 1
+PART_NONFINITE = PART_LOST_MASS + 2
+PART_WIDTH = PART_LOST_MASS + 3
+
 # tools row layout
 T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2, 3, 4, 5, 8, 9, 12, 21, 24
 T_WIDTH = 32
@@ -76,6 +91,9 @@ T_WIDTH = 32
 FACE_GROUND = 4   # face ids: 0-3 domain walls (x-, x+, y-, y+), 4 ground top, 5 + 5k + f pit k faces
 FACES_PER_PIT = 5
 HUGE = 1e300
+SQRT_HALF = 0.7071067811865476
+SQRT_FIFTH = 0.4472135954999579
+SQRT_TWO_FIFTHS = 0.6324555320336759
 
 vec3 = ti.types.vector(3, ti.f64)
 vec4 = ti.types.vector(4, ti.f64)
@@ -98,12 +116,13 @@ SDF = ti.types.ndarray(dtype=vec4f, ndim=1)
 
 # ----------------------------------------------------------------------------------------------- contact law
 @ti.func
-def contact_law(n, overlap, v_c, w_rel, m_eff, i_eff, r_roll, lever, hist, k, mu, mu_r, prm: ti.template(), dt):
+def contact_law(n, overlap, v_c, w_rel, sqrt_mk, sqrt_ik, r_roll, hist, k, mu, mu_r, prm: ti.template(), dt):
     """Force and torque on body A of one contact (n points from B to A, overlap > 0).
 
     v_c: velocity of A's contact point relative to B's; w_rel: angular velocity of A relative to B;
-    lever: vector from A's centre to the contact point; hist: (tangential spring, rolling spring).
-    Returns force on A, torque on A about its centre, normal force (spring + dashpot), new history.
+    sqrt_mk, sqrt_ik: sqrt(m_eff k) and sqrt(I_eff k) (effective mass and moment of inertia of the pair);
+    hist: (tangential spring, rolling spring). Returns the force on A, its tangential part, the rolling
+    torque on A, and the new history; the torque on A is lever x f_t + m_r (B gets the opposite of each).
     Normal: linear spring-dashpot (Cundall & Strack). The dashpot may pull briefly while the bodies separate;
     that is what makes the restitution exactly e (clipping it would raise e for strong damping). Tangential: spring k_t = P_KT_RATIO k with history,
     capped at mu F_n (Coulomb); the stored spring is projected onto the current tangent plane each step (the
@@ -111,7 +130,7 @@ def contact_law(n, overlap, v_c, w_rel, m_eff, i_eff, r_roll, lever, hist, k, mu
     twisting: EPSD type C (Ai et al. 2011) spring k_r = 2.25 mu_r^2 k r_roll^2 on the relative rotation with
     viscous damping while elastic, torque capped at mu_r r_roll F_n.
     """
-    gamma = prm[P_DAMP] * ti.sqrt(m_eff * k)
+    gamma = prm[P_DAMP] * sqrt_mk
     v_n = v_c.dot(n)
     f_n = k * overlap - gamma * v_n
     f_press = ti.max(f_n, 0.0)  # friction and rolling resistance need compression
@@ -133,7 +152,7 @@ def contact_law(n, overlap, v_c, w_rel, m_eff, i_eff, r_roll, lever, hist, k, mu
         # the whole relative rotation, rolling and twisting (spin about n): a sphere spinning on its contact
         # would otherwise never stop
         kr = ti.f64(2.25) * mu_r * mu_r * k * r_roll * r_roll
-        cr = prm[P_ETA_R] * 3.0 * mu_r * r_roll * ti.sqrt(i_eff * k)  # eta 2 sqrt(I_eff k_r)
+        cr = prm[P_ETA_R] * 3.0 * mu_r * r_roll * sqrt_ik  # eta 2 sqrt(I_eff k_r)
         theta = vec3(hist[3], hist[4], hist[5]) + w_rel * dt
         m_r = -kr * theta - cr * w_rel
         cap_r = mu_r * r_roll * f_press
@@ -141,10 +160,8 @@ def contact_law(n, overlap, v_c, w_rel, m_eff, i_eff, r_roll, lever, hist, k, mu
         if mr2 > cap_r * cap_r:
             m_r *= cap_r / ti.sqrt(mr2)
             theta = -m_r / ti.max(kr, 1e-300)  # kr > 0 here; the guard only silences constant folding
-    force = f_n * n + f_t
-    torque = lever.cross(f_t) + m_r
     new_hist = vec6f(xi[0], xi[1], xi[2], theta[0], theta[1], theta[2])
-    return force, torque, f_n, new_hist
+    return f_n * n + f_t, f_t, m_r, new_hist
 
 
 @ti.func
@@ -164,51 +181,72 @@ def cohesion_force(gap, prm: ti.template()):
 
 
 # ----------------------------------------------------------------------------------------------- pair forces
-@ti.func
-def _pair_sum(i, x_i, v_i, w_i, p_i, kin: ti.template(), prop: ti.template(), nbr_off: ti.template(),
-              nbr_j: ti.template(), nbr_h: ti.template(), prm: ti.template(), dt):
-    """Force and torque on particle i from its neighbour list: contacts and cohesion; updates pair springs."""
-    r_i = p_i[0]
-    m_i = p_i[1]
-    reach_extra = prm[P_COH_D]
-    k = prm[P_KN]
-    mu = prm[P_MU]
-    mu_r = prm[P_MU_R]
-    f = vec3(0.0)
-    t = vec3(0.0)
-    for e in range(nbr_off[i], nbr_off[i + 1]):
-        j = nbr_j[e]
-        dx = x_i - kin[j, 0]
-        d2 = dx.dot(dx)
-        p_j = prop[j]
-        r_j = p_j[0]
-        r_sum = r_i + r_j
-        reach = r_sum + reach_extra
-        touching = False
-        if d2 < reach * reach and d2 > 0.0:
-            d = ti.sqrt(d2)
-            n = dx * (1.0 / d)
-            gap = d - r_sum
-            if gap < 0.0:
-                touching = True
-                m_j = p_j[1]
-                m_eff = m_i * m_j / (m_i + m_j)
-                i_eff = 1.0 / (p_i[3] + p_j[3])
-                r_roll = r_i * r_j / r_sum
-                lever_i = -r_i * n
-                w_j = kin[j, 2]
-                v_c = (v_i + w_i.cross(lever_i)) - (kin[j, 1] + w_j.cross(r_j * n))
-                force, torque, f_n, h = contact_law(n, -gap, v_c, w_i - w_j, m_eff, i_eff, r_roll, lever_i,
-                                                    nbr_h[e], k, mu, mu_r, prm, dt)
-                f += force
-                t += torque
-                nbr_h[e] = h
-            f -= cohesion_force(gap, prm) * n
-        if not touching:
-            h_old = nbr_h[e]
-            if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
-                nbr_h[e] = vec6f(0.0)
-    return f, t
+@ti.kernel
+def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
+                pair_out: KIN, own: KIN, prm: F64_1, dt: ti.f64):
+    """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
+
+    The force and torque on i are summed into own[i]; what j receives is written to pair_out[e] (e: the
+    entry), and step() gathers those through the reverse lists. No atomics: deterministic for a given
+    thread count, and j gets exactly minus i's force (momentum is conserved to round-off).
+    """
+    for i in range(n_act):
+        x_i = kin[i, 0]
+        v_i = kin[i, 1]
+        w_i = kin[i, 2]
+        p_i = prop[i]
+        r_i = p_i[0]
+        reach_extra = prm[P_COH_D]
+        k = prm[P_KN]
+        sqrt_k = prm[P_SQRT_KN]
+        mu = prm[P_MU]
+        mu_r = prm[P_MU_R]
+        f = vec3(0.0)
+        t = vec3(0.0)
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            j = nbr_j[e]
+            dx = x_i - kin[j, 0]
+            d2 = dx.dot(dx)
+            p_j = prop[j]
+            r_j = p_j[0]
+            r_sum = r_i + r_j
+            reach = r_sum + reach_extra
+            f_j = vec3(0.0)
+            t_j = vec3(0.0)
+            touching = False
+            if d2 < reach * reach and d2 > 0.0:
+                d = ti.sqrt(d2)
+                n = dx * (1.0 / d)
+                gap = d - r_sum
+                if gap < 0.0:
+                    touching = True
+                    # pair means by products, not divisions (the hot loop is bound by sqrt/div latency): with
+                    # radii within +-10% the geometric mean is within 1% of the harmonic one.
+                    # m_eff = m_i m_j/(m_i + m_j) ~ sqrt(m_i m_j)/2, I_eff likewise, r_i r_j/r_sum ~ r_sum/4
+                    qq = p_i[3] * p_j[3]
+                    sqrt_mk = ti.f64(SQRT_HALF) * qq * sqrt_k
+                    sqrt_ik = ti.f64(SQRT_FIFTH) * qq * 0.5 * r_sum * sqrt_k
+                    lever_i = -r_i * n
+                    w_j = kin[j, 2]
+                    v_c = (v_i + w_i.cross(lever_i)) - (kin[j, 1] + w_j.cross(r_j * n))
+                    force, f_t, m_r, h = contact_law(n, -gap, v_c, w_i - w_j, sqrt_mk, sqrt_ik, 0.25 * r_sum,
+                                                     nbr_h[e], k, mu, mu_r, prm, dt)
+                    f += force
+                    t += lever_i.cross(f_t) + m_r
+                    f_j = -force
+                    t_j = (r_j * n).cross(-f_t) - m_r
+                    nbr_h[e] = h
+                f_coh = cohesion_force(gap, prm) * n
+                f -= f_coh
+                f_j += f_coh
+            if not touching:
+                h_old = nbr_h[e]
+                if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
+                    nbr_h[e] = vec6f(0.0)
+            pair_out[e, 0] = f_j
+            pair_out[e, 1] = t_j
+        own[i, 0] = f
+        own[i, 1] = t
 
 
 # ----------------------------------------------------------------------------------------------- static geometry
@@ -282,7 +320,7 @@ def _face(fid, pit, x, r, prm: ti.template()):
                 d[axis] = x[axis] - prm[b + axis]
                 if side == 1:
                     d[axis] = x[axis] - prm[b + 3 + axis]
-                d[2] = x[2] - ti.min(ti.max(x[2], z_floor), 0.0)
+                d[2] = x[2] - ti.min(ti.max(x[2], z_floor), prm[P_WALL_TOP])
                 dist = d.norm()
                 if dist > 0.0:
                     n = d / dist
@@ -352,24 +390,25 @@ def _rotation_from_vector(phi):
 
 # ----------------------------------------------------------------------------------------------- integration
 @ti.kernel
-def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, nbr_off: I32_1,
-         nbr_j: I32_1, nbr_h: HIST_1, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
-         prm: F64_1, stat: F64_1, dt: ti.f64, bulk_damping: ti.f64) -> ti.f64:
-    """One substep: every force on each particle (neighbours, gravity, ground and walls, tools), then
-    symplectic Euler into kin_out (kin is only read, so particles can be advanced as soon as their forces are
-    known, in one pass), then the tools move.
+def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KIN, rev_off: I32_1,
+         rev_e: I32_1, pair_out: KIN, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
+         prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64) -> ti.f64:
+    """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
+    ground and walls, tools), advance it (symplectic Euler), then move the tools.
 
     Returns the largest squared displacement since the last neighbour build (HUGE when a particle left the
     domain, so the caller rebuilds and drops it from the lists).
     """
     stat[S_DISP2] = 0.0
     n_blocks = (n_act + BLOCK - 1) // BLOCK
+    ti.loop_config(block_dim=2)  # CPU grain: a few blocks per task, so small soils still use every thread
     for blk in range(n_blocks):
         disp2_max = ti.f64(0.0)
         speed2_max = ti.f64(0.0)
         nonfinite = ti.f64(0.0)
         lost_mass = ti.f64(0.0)
         lost_count = ti.f64(0.0)
+        tool_sum = ti.Matrix.zero(ti.f64, MAX_TOOLS, 6)
         for i in range(blk * BLOCK, ti.min(n_act, (blk + 1) * BLOCK)):
             if flags[i] == 1:  # (all of 0..n_act are active: a deactivation triggers a rebuild at once)
                 x = kin[i, 0]
@@ -378,7 +417,13 @@ def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref:
                 p = prop[i]
                 r = p[0]
                 m = p[1]
-                force, torque = _pair_sum(i, x, v, w, p, kin, prop, nbr_off, nbr_j, nbr_h, prm, dt)
+                q2 = p[3] * p[3]  # sqrt(m): the effective mass against ground, walls and tools is m
+                force = own[i, 0]
+                torque = own[i, 1]
+                for q in range(rev_off[i], rev_off[i + 1]):
+                    e = rev_e[q]
+                    force += pair_out[e, 0]
+                    torque += pair_out[e, 1]
                 force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
                 buried = False
                 # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
@@ -400,11 +445,12 @@ def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref:
                             if slot >= 0:
                                 hist = surf_h[i, slot]
                             lever = -r * n
-                            f_c, t_c, f_n, h_new = contact_law(n, overlap, v + w.cross(lever), w, m, 1.0 / p[3],
-                                                               r, lever, hist, prm[P_K_WALL], prm[P_MU_WALL],
-                                                               prm[P_MU_R], prm, dt)
+                            sqrt_k = prm[P_SQRT_KWALL]
+                            f_c, f_t, m_r, h_new = contact_law(n, overlap, v + w.cross(lever), w, q2 * sqrt_k,
+                                                               ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r, hist,
+                                                               prm[P_K_WALL], prm[P_MU_WALL], prm[P_MU_R], prm, dt)
                             force += f_c
-                            torque += t_c
+                            torque += lever.cross(f_t) + m_r
                             if slot >= 0:
                                 ids[slot] = fid
                                 touched[slot] = 1
@@ -432,19 +478,20 @@ def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref:
                                 w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
                                 v_tool = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]) + \
                                     w_tool.cross(x_c - origin)
-                                f_c, t_c, f_n, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
-                                                                   w - w_tool, m, 1.0 / p[3], r, lever,
-                                                                   surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
+                                f_c, f_t, m_r, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
+                                                                   w - w_tool, q2 * prm[P_SQRT_KTOOL],
+                                                                   ti.f64(SQRT_TWO_FIFTHS) * q2 * r * prm[P_SQRT_KTOOL],
+                                                                   r, surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
                                                                    prm[P_MU_TOOL], prm[P_MU_R], prm, dt)
                                 force += f_c
-                                torque += t_c
+                                torque += lever.cross(f_t) + m_r
                                 surf_h[i, WALL_SLOTS + t] = h_new
                                 arm = x_c - origin
                                 on_tool = -f_c
                                 moment = arm.cross(on_tool)
                                 for c in ti.static(range(3)):
-                                    ti.atomic_add(tool_acc[t, c], on_tool[c])
-                                    ti.atomic_add(tool_acc[t, 3 + c], moment[c])
+                                    tool_sum[t, c] += on_tool[c]
+                                    tool_sum[t, 3 + c] += moment[c]
                         if not hit:
                             h_old = surf_h[i, WALL_SLOTS + t]
                             if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
@@ -454,20 +501,19 @@ def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref:
                 if buried:
                     # left the domain (or tunnelled into the ground): book the mass, drop the particle
                     flags[i] = 0
-                    kin_out[i, 0] = x
-                    kin_out[i, 1] = vec3(0.0)
-                    kin_out[i, 2] = vec3(0.0)
+                    kin[i, 1] = vec3(0.0)
+                    kin[i, 2] = vec3(0.0)
                     lost_mass += m
                     lost_count += 1.0
                     disp2_max = HUGE
                 else:
                     damp = 1.0 / (1.0 + bulk_damping * dt)
                     v = (v + force * (p[2] * dt)) * damp
-                    w = (w + torque * (p[3] * dt)) * damp
+                    w = (w + torque * (2.5 * p[2] / (r * r) * dt)) * damp  # I = 2/5 m r^2
                     x += v * dt
-                    kin_out[i, 0] = x
-                    kin_out[i, 1] = v
-                    kin_out[i, 2] = w
+                    kin[i, 0] = x
+                    kin[i, 1] = v
+                    kin[i, 2] = w
                     dx = x - x_ref[i]
                     speed2 = v.dot(v)
                     if not (speed2 < HUGE and dx.dot(dx) < HUGE):  # NaN fails every comparison
@@ -477,11 +523,20 @@ def step(n_act: ti.i32, kin: KIN, kin_out: KIN, prop: PROP, flags: I32_1, x_ref:
                         speed2_max = ti.max(speed2_max, speed2)
         ti.atomic_max(stat[S_DISP2], disp2_max)
         ti.atomic_max(stat[S_SPEED2], speed2_max)
-        if nonfinite > 0.0:
-            ti.atomic_add(stat[S_NONFINITE], nonfinite)
-        if lost_count > 0.0:
-            ti.atomic_add(stat[S_LOST_MASS], lost_mass)
-            ti.atomic_add(stat[S_LOST_COUNT], lost_count)
+        for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
+            partial[blk, 6 * t + c] = tool_sum[t, c]
+        partial[blk, PART_LOST_MASS] = lost_mass
+        partial[blk, PART_LOST_COUNT] = lost_count
+        partial[blk, PART_NONFINITE] = nonfinite
+    # sums in block order (not atomics in thread order): the tool wrench fed back to the machine is
+    # bit-for-bit reproducible
+    ti.loop_config(serialize=True)
+    for blk in range(n_blocks):
+        for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
+            tool_acc[t, c] += partial[blk, 6 * t + c]
+        stat[S_LOST_MASS] += partial[blk, PART_LOST_MASS]
+        stat[S_LOST_COUNT] += partial[blk, PART_LOST_COUNT]
+        stat[S_NONFINITE] += partial[blk, PART_NONFINITE]
     # tools move kinematically: p += v dt, R <- Rot(w dt) R
     for t in range(MAX_TOOLS):
         if tools[t, T_ON] > 0.0:
@@ -511,6 +566,22 @@ def _spread_bits(v):
 @ti.func
 def _morton(c):
     return _spread_bits(c[0]) | (_spread_bits(c[1]) << 1) | (_spread_bits(c[2]) << 2)
+
+
+# Half stencil: the own cell (pairs with a higher index) and the 13 neighbour cells "ahead" of it; every pair
+# of particles in adjacent cells is found exactly once, from the cell that sees the other ahead.
+HALF_STENCIL = tuple(d for d in ((dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+                     if (d[2], d[1], d[0]) >= (0, 0, 0))
+
+
+@ti.func
+def _neighbor_bits(c):
+    """Interleaved bits of the cell coordinates c - 1, c, c + 1 per axis: the Morton code of each of the 27
+    neighbour cells is then three ORs (9 bit spreads per particle instead of 81)."""
+    sx = ti.Vector([_spread_bits(c[0] - 1), _spread_bits(c[0]), _spread_bits(c[0] + 1)])
+    sy = ti.Vector([_spread_bits(c[1] - 1), _spread_bits(c[1]), _spread_bits(c[1] + 1)]) << 1
+    sz = ti.Vector([_spread_bits(c[2] - 1), _spread_bits(c[2]), _spread_bits(c[2] + 1)]) << 2
+    return sx, sy, sz
 
 
 @ti.func
@@ -585,20 +656,24 @@ def gather_particles(n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP
 @ti.kernel
 def count_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, nbr_off: I32_1,
                     prm: F64_1, mask: ti.i32) -> ti.i32:
-    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i; then the prefix sum
-    (nbr_off[i] is where i's list starts). Returns the total number of entries."""
+    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i found through the
+    half stencil (a half list: each pair once, held by one of the two); then the prefix sum (nbr_off[i] is
+    where i's list starts). Returns the entry count."""
     nbr_off[0] = 0
     for i in range(n_act):
         x_i = kin[i, 0]
         r_i = prop[i][0]
-        c_i = _cell_of(x_i, prm)
         extra = prm[P_COH_D] + prm[P_SKIN]
         count = 0
-        for d in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
-            code = _morton(c_i + d)
+        sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
+        for d in ti.static(HALF_STENCIL):
+            code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
             b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
-            for j in range(starts[b], starts[b + 1]):
-                if cell[j] == code and j != i:  # buckets mix cells: keep only this cell's particles
+            first = starts[b]
+            if ti.static(d == (0, 0, 0)):
+                first = ti.max(first, i + 1)  # own cell: each pair once, by its lower index
+            for j in range(first, starts[b + 1]):
+                if cell[j] == code:  # buckets mix cells: keep only this cell's particles
                     dx = x_i - kin[j, 0]
                     reach = r_i + prop[j][0] + extra
                     if dx.dot(dx) < reach * reach:
@@ -610,47 +685,82 @@ def count_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I3
     return nbr_off[n_act]
 
 
+@ti.func
+def _old_history(o_i, o_j, old_off: ti.template(), old_j: ti.template(), old_h: ti.template()):
+    """Springs of the pair (o_i, o_j) in the old lists (held by either particle), seen from o_i."""
+    h = vec6f(0.0)
+    for s in range(old_off[o_i], old_off[o_i + 1]):
+        if old_j[s] == o_j:
+            h = old_h[s]
+    for s in range(old_off[o_j], old_off[o_j + 1]):
+        if old_j[s] == o_i:
+            h = -old_h[s]  # held by the other side: every spring of a pair is antisymmetric
+    return h
+
+
 @ti.kernel
 def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, order: I32_1,
                    old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
                    x_ref: KIN1, prm: F64_1, mask: ti.i32):
-    """Write the lists counted by count_neighbors, carrying each pair's spring over from the old lists.
+    """Write the half lists counted by count_neighbors, carrying each pair's springs over from the old lists.
 
-    Particles are already sorted (new index = slot); a pair's old history is found in the old list of its old
-    indices (order[new] = old). Also records the positions the skin criterion is measured from.
+    Particles are already sorted (new index = slot; order[new] = old). Also records the positions the skin
+    criterion is measured from.
     """
     for i in range(n_act):
         x_i = kin[i, 0]
         r_i = prop[i][0]
-        c_i = _cell_of(x_i, prm)
         extra = prm[P_COH_D] + prm[P_SKIN]
         e = nbr_off[i]
         o_i = order[i]
-        for d in ti.static(ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2)))):
-            code = _morton(c_i + d)
+        sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
+        for d in ti.static(HALF_STENCIL):
+            code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
             b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
-            for j in range(starts[b], starts[b + 1]):
-                if cell[j] == code and j != i:
+            first = starts[b]
+            if ti.static(d == (0, 0, 0)):
+                first = ti.max(first, i + 1)
+            for j in range(first, starts[b + 1]):
+                if cell[j] == code:
                     dx = x_i - kin[j, 0]
                     reach = r_i + prop[j][0] + extra
                     if dx.dot(dx) < reach * reach:
                         nbr_j[e] = j
-                        o_j = order[j]
-                        h = vec6f(0.0)
-                        for s in range(old_off[o_i], old_off[o_i + 1]):
-                            if old_j[s] == o_j:
-                                h = old_h[s]
-                        nbr_h[e] = h
+                        nbr_h[e] = _old_history(o_i, order[j], old_off, old_j, old_h)
                         e += 1
         x_ref[i] = x_i
 
 
+@ti.kernel
+def build_reverse(n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_e: I32_1):
+    """Reverse lists: for each j, the entries (held by other particles) of the pairs with j, in entry
+    order (serial: deterministic, and cheap next to the neighbour search)."""
+    for i in range(n_act + 1):
+        rev_off[i] = 0
+    ti.loop_config(serialize=True)
+    for i in range(n_act):
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            rev_off[nbr_j[e] + 1] += 1
+    ti.loop_config(serialize=True)
+    for i in range(n_act):
+        rev_off[i + 1] += rev_off[i]
+    ti.loop_config(serialize=True)
+    for i in range(n_act):
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            j = nbr_j[e]
+            rev_e[rev_off[j]] = e
+            rev_off[j] += 1
+    ti.loop_config(serialize=True)
+    for i in range(n_act):  # the fill advanced each start to the next one's: shift back
+        rev_off[n_act - i] = rev_off[n_act - i - 1]
+    rev_off[0] = 0
+
+
 # ----------------------------------------------------------------------------------------------- diagnostics
 @ti.kernel
-def totals(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, out: F64_1):
-    """out = [mass, momentum x y z, kinetic energy (translation + rotation), max speed, count, 0]."""
-    for c in range(8):
-        out[c] = 0.0
+def totals(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, partial: F64_2, out: F64_1):
+    """out = [mass, momentum x y z, kinetic energy (translation + rotation), max speed, count, 0]; block sums
+    added in block order, so the result does not depend on thread scheduling."""
     n_blocks = (n_act + BLOCK - 1) // BLOCK
     for blk in range(n_blocks):
         acc = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], ti.f64)
@@ -663,39 +773,88 @@ def totals(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, out: F64_1):
                 acc[1] += m * v[0]
                 acc[2] += m * v[1]
                 acc[3] += m * v[2]
-                acc[4] += 0.5 * m * v.dot(v) + 0.5 * w.dot(w) / prop[i][3]
+                acc[4] += 0.5 * m * v.dot(v) + ti.f64(0.2) * m * prop[i][0] ** 2 * w.dot(w)
                 acc[5] = ti.max(acc[5], v.norm())
                 acc[6] += 1.0
-        for c in ti.static(range(5)):
-            ti.atomic_add(out[c], acc[c])
-        ti.atomic_max(out[5], acc[5])
-        ti.atomic_add(out[6], acc[6])
+        for c in ti.static(range(7)):
+            partial[blk, c] = acc[c]
+    for c in range(8):
+        out[c] = 0.0
+    ti.loop_config(serialize=True)
+    for blk in range(n_blocks):
+        for c in ti.static(range(7)):
+            if c == 5:
+                out[c] = ti.max(out[c], partial[blk, c])
+            else:
+                out[c] += partial[blk, c]
 
 
 @ti.kernel
 def surface_height(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, height: F64_2, x0: ti.f64, dx: ti.f64,
                    y0: ti.f64, dy: ti.f64):
-    """height[ix, iy] = max(z + r) of the particles whose centre lies in cell (ix, iy) (cells centred on axes)."""
+    """height[ix, iy] = the soil surface above each node as a ball of the grain's radius rolling over it would
+    trace it: every sphere raises the nodes within 2r of its centre to z - r + sqrt((2r)^2 - d^2) (its own top
+    z + r right above it). Nodes finer than a grain are not left empty, and the narrow gaps between grains
+    (down which a bare envelope of sphere caps would read the pit floor) are bridged."""
     for i in range(n_act):
         if flags[i] == 1:
             x = kin[i, 0]
-            ix = ti.cast(ti.floor((x[0] - x0) / dx + 0.5), ti.i32)
-            iy = ti.cast(ti.floor((x[1] - y0) / dy + 0.5), ti.i32)
-            if 0 <= ix < height.shape[0] and 0 <= iy < height.shape[1]:
-                ti.atomic_max(height[ix, iy], x[2] + prop[i][0])
+            r = prop[i][0]
+            reach = 2.0 * r
+            ix0 = ti.max(ti.cast(ti.ceil((x[0] - reach - x0) / dx), ti.i32), 0)
+            ix1 = ti.min(ti.cast(ti.floor((x[0] + reach - x0) / dx), ti.i32), height.shape[0] - 1)
+            iy0 = ti.max(ti.cast(ti.ceil((x[1] - reach - y0) / dy), ti.i32), 0)
+            iy1 = ti.min(ti.cast(ti.floor((x[1] + reach - y0) / dy), ti.i32), height.shape[1] - 1)
+            for ix in range(ix0, ix1 + 1):
+                for iy in range(iy0, iy1 + 1):
+                    ddx = x0 + ix * dx - x[0]
+                    ddy = y0 + iy * dy - x[1]
+                    d2 = ddx * ddx + ddy * ddy
+                    if d2 <= reach * reach:
+                        ti.atomic_max(height[ix, iy], x[2] - r + ti.sqrt(reach * reach - d2))
 
 
 @ti.kernel
-def mass_in_box(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, origin: vec3, rot: mat3, lo: vec3,
-                hi: vec3) -> ti.f64:
+def mass_in_box(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, partial: F64_2, origin: vec3, rot: mat3,
+                lo: vec3, hi: vec3) -> ti.f64:
     """Mass of active particles whose centre, in the frame (origin, rot: frame -> world), lies in [lo, hi]."""
-    total = ti.f64(0.0)
-    for i in range(n_act):
-        if flags[i] == 1:
-            q = rot.transpose() @ (kin[i, 0] - origin)
-            if lo[0] <= q[0] <= hi[0] and lo[1] <= q[1] <= hi[1] and lo[2] <= q[2] <= hi[2]:
-                total += prop[i][1]
-    return total
+    n_blocks = (n_act + BLOCK - 1) // BLOCK
+    for blk in range(n_blocks):
+        total = ti.f64(0.0)
+        for i in range(blk * BLOCK, ti.min(n_act, (blk + 1) * BLOCK)):
+            if flags[i] == 1:
+                q = rot.transpose() @ (kin[i, 0] - origin)
+                if lo[0] <= q[0] <= hi[0] and lo[1] <= q[1] <= hi[1] and lo[2] <= q[2] <= hi[2]:
+                    total += prop[i][1]
+        partial[blk, 0] = total
+    mass = ti.f64(0.0)
+    ti.loop_config(serialize=True)
+    for blk in range(n_blocks):
+        mass += partial[blk, 0]
+    return mass
+
+
+@ti.kernel
+def begin_advance(tool_acc: F64_2, stat: F64_1):
+    """Zero the tool accumulators and the per-call divergence diagnostics."""
+    for t, c in ti.ndrange(MAX_TOOLS, 6):
+        tool_acc[t, c] = 0.0
+    stat[S_SPEED2] = 0.0
+    stat[S_NONFINITE] = 0.0
+
+
+@ti.kernel
+def end_advance(tools: F64_2, tool_acc: F64_2, stat: F64_1, report: F64_1):
+    """Everything the caller reads after advance() in one array (one transfer): tool rows, accumulators, stat."""
+    for t, c in ti.ndrange(MAX_TOOLS, T_WIDTH):
+        report[t * T_WIDTH + c] = tools[t, c]
+    for t, c in ti.ndrange(MAX_TOOLS, 6):
+        report[MAX_TOOLS * T_WIDTH + t * 6 + c] = tool_acc[t, c]
+    for c in range(N_STAT):
+        report[MAX_TOOLS * (T_WIDTH + 6) + c] = stat[c]
+
+
+REPORT_SIZE = MAX_TOOLS * (T_WIDTH + 6) + N_STAT
 
 
 @ti.kernel

@@ -28,8 +28,8 @@ from .paths import cache_dir
 from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
 from .tool_sdf import tool_sdf
 
-SOLVER_VERSION = 2
-NEIGHBORS_PER_PARTICLE = 12   # initial neighbour-entry capacity per particle; grows when exceeded
+SOLVER_VERSION = 8
+NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
 POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
@@ -89,7 +89,7 @@ _GRAPH: dict = {}
 
 def _substep_graph():
     """Compute graph of one substep, built once per Taichi runtime; None if the backend cannot build graphs
-    (then the kernel is launched directly). Launching an ndarray kernel from Python costs ~20 us per argument,
+    (then the kernels are launched directly). Launching an ndarray kernel from Python costs ~20 us per argument,
     which would dominate small soils; a graph binds the arguments in C++."""
     runtime = id(ti.lang.impl.get_runtime().prog)
     if _GRAPH.get("runtime") != runtime:
@@ -97,26 +97,26 @@ def _substep_graph():
         _GRAPH["runtime"] = runtime
         try:
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
-
-            def nd(name, dtype, ndim):
-                return arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim)
-
+            kinds = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr_j=(ti.i32, 1),
+                         nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
+                         flags=(ti.i32, 1), x_ref=(dem.vec3, 1), rev_off=(ti.i32, 1), rev_e=(ti.i32, 1),
+                         surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2), tools=(ti.f64, 2), tool_acc=(ti.f64, 2),
+                         sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2))
+            sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in kinds.items()}
+            sym.update(n_act=arg(kind.SCALAR, "n_act", ti.i32), dt=arg(kind.SCALAR, "dt", ti.f64),
+                       bulk_damping=arg(kind.SCALAR, "bulk_damping", ti.f64))
             builder = ti.graph.GraphBuilder()
-            builder.dispatch(dem.step, arg(kind.SCALAR, "n_act", ti.i32), nd("kin", dem.vec3, 2),
-                             nd("kin_out", dem.vec3, 2), nd("prop", dem.vec4, 1), nd("flags", ti.i32, 1),
-                             nd("x_ref", dem.vec3, 1), nd("nbr_off", ti.i32, 1), nd("nbr_j", ti.i32, 1),
-                             nd("nbr_h", dem.vec6f, 1), nd("surf_id", ti.i32, 2), nd("surf_h", dem.vec6f, 2),
-                             nd("tools", ti.f64, 2), nd("tool_acc", ti.f64, 2), nd("sdf", dem.vec4f, 1),
-                             nd("prm", ti.f64, 1), nd("stat", ti.f64, 1), arg(kind.SCALAR, "dt", ti.f64),
-                             arg(kind.SCALAR, "bulk_damping", ti.f64))
+            builder.dispatch(dem.pair_forces, *(sym[a] for a in _PAIR_ARGS))
+            builder.dispatch(dem.step, *(sym[a] for a in _STEP_ARGS))
             _GRAPH["graph"] = builder.compile()
         except Exception:  # noqa: BLE001 - any failure here just means direct launches
             _GRAPH["graph"] = None
     return _GRAPH["graph"]
 
 
-_STEP_ARGS = ("n_act", "kin", "kin_out", "prop", "flags", "x_ref", "nbr_off", "nbr_j", "nbr_h", "surf_id", "surf_h",
-              "tools", "tool_acc", "sdf", "prm", "stat", "dt", "bulk_damping")
+_PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "pair_out", "own", "prm", "dt")
+_STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "rev_e", "pair_out", "surf_id", "surf_h",
+              "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping")
 
 
 class DemSoil:
@@ -156,6 +156,7 @@ class DemSoil:
         self._tools = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))
         self._tool_acc = ti.ndarray(ti.f64, (dem.MAX_TOOLS, 6))
         self._sdf = ti.ndarray(dem.vec4f, 1)
+        self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)
         self._allocate(0)
         if self.beds:
             self._build_beds(settle_time)
@@ -183,6 +184,9 @@ class DemSoil:
         prm[dem.P_NPITS] = len(self.beds)
         prm[dem.P_ETA_R] = m.rolling_damping
         prm[dem.P_KT_RATIO] = m.k_t / m.k_n
+        prm[dem.P_SQRT_KN] = math.sqrt(m.k_n)
+        prm[dem.P_SQRT_KWALL] = math.sqrt(m.k_wall)
+        prm[dem.P_SQRT_KTOOL] = math.sqrt(m.k_tool)
         for k, (b_min, b_max) in enumerate(self.beds):
             prm[dem.P_PITS + 6 * k:dem.P_PITS + 6 * k + 6] = np.concatenate([b_min, b_max])
         return prm
@@ -202,6 +206,9 @@ class DemSoil:
         self._surf_id, self._surf_id2 = (nd(ti.i32, (cap, dem.WALL_SLOTS)) for _ in range(2))
         self._surf_h, self._surf_h2 = (nd(dem.vec6f, (cap, dem.SURF_SLOTS)) for _ in range(2))
         self._x_ref = nd(dem.vec3, cap)
+        self._own = nd(dem.vec3, (cap, 2))
+        self._partial = nd(ti.f64, (cap // dem.BLOCK + 1, dem.PART_WIDTH))
+        self._rev_off = nd(ti.i32, cap + 1)
         self._bucket = nd(ti.i32, cap)
         self._order = nd(ti.i32, cap)
         self._counts = nd(ti.i32, table + 1)
@@ -213,8 +220,11 @@ class DemSoil:
         self.n_act = 0
 
     def _allocate_neighbors(self, entries: int) -> None:
-        self._nbr_j, self._nbr_j2 = (ti.ndarray(ti.i32, max(entries, 1)) for _ in range(2))
-        self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, max(entries, 1)) for _ in range(2))
+        entries = max(entries, 1)
+        self._nbr_j, self._nbr_j2 = (ti.ndarray(ti.i32, entries) for _ in range(2))
+        self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, entries) for _ in range(2))
+        self._rev_e = ti.ndarray(ti.i32, entries)
+        self._pair_out = ti.ndarray(dem.vec3, (entries, 2))
 
     def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
         """Replace every particle (state only; contact history starts empty) and restart the mass budget.
@@ -234,7 +244,7 @@ class DemSoil:
             self._stat.fill(0.0)
             return
         mass = self.micro.solid_density * 4.0 / 3.0 * math.pi * rad ** 3
-        prop = np.stack([rad, mass, 1.0 / mass, 1.0 / (0.4 * mass * rad ** 2)], axis=1)
+        prop = np.stack([rad, mass, 1.0 / mass, mass ** 0.25], axis=1)
         self._kin.from_numpy(np.stack([pos, vel, omg], axis=1))
         self._prop.from_numpy(prop)
         self._flags.fill(1)
@@ -264,14 +274,18 @@ class DemSoil:
                                       self._prm, self._mask)
         if entries > self._nbr_j2.shape[0]:
             # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact)
-            self._nbr_j2 = ti.ndarray(ti.i32, int(entries * 1.25) + 64)
-            self._nbr_h2 = ti.ndarray(dem.vec6f, int(entries * 1.25) + 64)
+            grown = int(entries * 1.25) + 64
+            self._nbr_j2 = ti.ndarray(ti.i32, grown)
+            self._nbr_h2 = ti.ndarray(dem.vec6f, grown)
+            self._rev_e = ti.ndarray(ti.i32, grown)
+            self._pair_out = ti.ndarray(dem.vec3, (grown, 2))
         dem.fill_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
                            self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
                            self._prm, self._mask)
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
+        dem.build_reverse(n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_e)
         self.n_act = int(n_act)
         self._entries = int(entries)
 
@@ -332,14 +346,21 @@ class DemSoil:
         t_fall = math.sqrt(2.0 * fall / GRAVITY) + 0.05
         quiet = 0.02 * math.sqrt(GRAVITY * self.micro.radius)  # max speed considered at rest
         # pour without friction, rolling resistance or cohesion: the spheres pack densely (~0.6 solid fraction,
-        # which the solid density assumes) instead of freezing in a loose, arched arrangement
+        # which the solid density assumes) instead of freezing in a loose, arched arrangement; the pit walls
+        # reach up meanwhile, so the column above the pit cannot spill over the rim
         loose = self._parameters()
         loose[[dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]] = 0.0
+        loose[dem.P_WALL_TOP] = 1e30
         self._prm.from_numpy(loose)
-        self._run_until_quiet(max(0.6 * settle_time, 1e-3), t_fall, quiet, SETTLE_DAMPING)
+        self._run_until_quiet(max(0.6 * settle_time, 2.0 * t_fall), t_fall, quiet, SETTLE_DAMPING)  # it must land
+        # friction on (the slow creep of a frictionless packing stops), then level the beds and let them rest
+        loose[[dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]] = self._parameters()[
+            [dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]]
+        self._prm.from_numpy(loose)
+        self._run_until_quiet(max(0.2 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
         self._prm.from_numpy(self._parameters())
         self._trim_to_beds()
-        self._run_until_quiet(max(0.3 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
+        self._run_until_quiet(max(0.1 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
         self._run_until_quiet(max(0.1 * settle_time, 1e-3), 0.0, quiet, 0.0)
         kin = self._kin.to_numpy()
         kin[:, 1:] = 0.0
@@ -359,7 +380,8 @@ class DemSoil:
                 break
 
     def _trim_to_beds(self) -> None:
-        """Remove particles standing above their bed's top (z + r > top), so each bed is level and full."""
+        """Remove particles centred above their bed's top less half a radius: each bed is full and level, its
+        highest grains reaching at most r / 2 above the top."""
         flags = self._flags.to_numpy()
         kin = self._kin.to_numpy()
         top = np.full(len(flags), -np.inf)
@@ -367,7 +389,7 @@ class DemSoil:
             inside = np.all((kin[:, 0, :2] >= b_min[:2]) & (kin[:, 0, :2] <= b_max[:2]), axis=1)
             top[inside] = b_max[2]
         rad = self._prop.to_numpy()[:, 0]
-        flags[kin[:, 0, 2] + rad > top] = 0
+        flags[kin[:, 0, 2] + 0.5 * rad > top] = 0
         self._flags.from_numpy(flags)
         self._rebuild()
 
@@ -444,17 +466,20 @@ class DemSoil:
 
     # ------------------------------------------------------------------------------------------- stepping
     def _substep(self, h: float, damping: float) -> None:
-        """One soil substep (forces, integration, tools moved); rebuild the neighbour lists when needed."""
-        args = (self.n_act, self._kin, self._kin2, self._prop, self._flags, self._x_ref, self._nbr_off, self._nbr_j,
-                self._nbr_h, self._surf_id, self._surf_h, self._tools, self._tool_acc, self._sdf, self._prm,
-                self._stat, h, damping)
+        """One soil substep (pair forces; then every other force, integration, tools moved); rebuild the
+        neighbour lists when needed."""
+        args = dict(kin=self._kin, prop=self._prop, flags=self._flags, x_ref=self._x_ref, nbr_off=self._nbr_off,
+                    nbr_j=self._nbr_j, nbr_h=self._nbr_h, pair_out=self._pair_out, own=self._own,
+                    rev_off=self._rev_off, rev_e=self._rev_e, surf_id=self._surf_id, surf_h=self._surf_h,
+                    tools=self._tools, tool_acc=self._tool_acc, sdf=self._sdf, prm=self._prm, stat=self._stat,
+                    partial=self._partial, n_act=self.n_act, dt=h, bulk_damping=damping)
         graph = _substep_graph()
         if graph is not None:
-            graph.run(dict(zip(_STEP_ARGS, args)))
+            graph.run(args)
             disp2 = self._stat[dem.S_DISP2]
         else:
-            disp2 = dem.step(*args)
-        self._kin, self._kin2 = self._kin2, self._kin
+            dem.pair_forces(*(args[a] for a in _PAIR_ARGS))
+            disp2 = dem.step(*(args[a] for a in _STEP_ARGS))
         if disp2 > 0.25 * self.skin * self.skin:
             self._rebuild()
 
@@ -472,18 +497,18 @@ class DemSoil:
         if self._tools_dirty:
             self._tools.from_numpy(self._tools_host)
             self._tools_dirty = False
-        self._tool_acc.fill(0.0)
-        self._stat[dem.S_SPEED2] = 0.0
-        self._stat[dem.S_NONFINITE] = 0.0
+        dem.begin_advance(self._tool_acc, self._stat)
         for _ in range(n_sub):
             self._substep(h, 0.0)
         self.time += duration
+        dem.end_advance(self._tools, self._tool_acc, self._stat, self._report)
+        report = self._report.to_numpy()
+        tools_end = dem.MAX_TOOLS * dem.T_WIDTH
+        self._tools_host = report[:tools_end].reshape(dem.MAX_TOOLS, dem.T_WIDTH)
         n_tools = len(self._tool_names)
-        if n_tools:
-            self._tools_host = self._tools.to_numpy()
-        acc = self._tool_acc.to_numpy()[:n_tools]
+        acc = report[tools_end:tools_end + dem.MAX_TOOLS * 6].reshape(dem.MAX_TOOLS, 6)[:n_tools]
         self._last_impulse = acc * h
-        self._check_divergence()
+        self._check_divergence(report[tools_end + dem.MAX_TOOLS * 6:])
         return acc / n_sub
 
     @property
@@ -491,8 +516,7 @@ class DemSoil:
         """(n_tools, 6) impulse and angular impulse (about the moving link origin) of the last advance()."""
         return self._last_impulse.copy()
 
-    def _check_divergence(self) -> None:
-        stat = self._stat.to_numpy()
+    def _check_divergence(self, stat: np.ndarray) -> None:
         if stat[dem.S_NONFINITE] > 0:
             raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: {int(stat[dem.S_NONFINITE])} particles "
                                   f"have a non-finite state (sim.soil_dt or the soil stiffness is unstable)")
@@ -506,7 +530,7 @@ class DemSoil:
         out = ti.ndarray(ti.f64, 8)
         if self.n_act == 0:
             return np.zeros(8)
-        dem.totals(self.n_act, self._kin, self._prop, self._flags, out)
+        dem.totals(self.n_act, self._kin, self._prop, self._flags, self._partial, out)
         return out.to_numpy()
 
     @property
@@ -561,8 +585,9 @@ class DemSoil:
         return ground
 
     def heightmap(self, x_axis: np.ndarray, y_axis: np.ndarray) -> np.ndarray:
-        """Terrain height on the grid (x_axis, y_axis are uniformly spaced cell centres): the highest particle
-        top (z + r) of the particles centred in each cell, or the static ground where a cell holds none."""
+        """Terrain height on the grid (x_axis, y_axis uniformly spaced nodes): the soil surface as a ball of the
+        grain radius rolling over the grains traces it (each grain's own top z + r right above it, narrow gaps
+        between grains bridged), or the static ground where no grain is within two radii of the node."""
         x_axis = np.asarray(x_axis, dtype=np.float64).ravel()
         y_axis = np.asarray(y_axis, dtype=np.float64).ravel()
         spacing = []
@@ -589,7 +614,7 @@ class DemSoil:
         if self.n_act == 0:
             return 0.0
         rot = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix()
-        return float(dem.mass_in_box(self.n_act, self._kin, self._prop, self._flags,
+        return float(dem.mass_in_box(self.n_act, self._kin, self._prop, self._flags, self._partial,
                                      ti.Vector(np.asarray(position, dtype=np.float64).tolist(), ti.f64),
                                      ti.Matrix(rot.tolist(), ti.f64),
                                      ti.Vector(np.asarray(box_min, dtype=np.float64).tolist(), ti.f64),
