@@ -723,10 +723,15 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
             for j in range(first, starts[b + 1]):
                 if cell[j] == code:
                     dx = x_i - kin[j, 0]
-                    reach = r_i + prop[j][0] + extra
-                    if dx.dot(dx) < reach * reach:
+                    d2 = dx.dot(dx)
+                    r_sum = r_i + prop[j][0]
+                    reach = r_sum + extra
+                    if d2 < reach * reach:
                         nbr_j[e] = j
-                        nbr_h[e] = _old_history(o_i, order[j], old_off, old_j, old_h)
+                        h = vec6f(0.0)
+                        if d2 < r_sum * r_sum:  # only touching pairs have springs that matter
+                            h = _old_history(o_i, order[j], old_off, old_j, old_h)
+                        nbr_h[e] = h
                         e += 1
         x_ref[i] = x_i
 

@@ -7,9 +7,11 @@ signed distance grid in their link frame.
 
 Neighbour search: particles are binned into cells of edge 2 r_max + D + skin, hashed (Morton code masked to a
 table of ~2 n buckets, so memory follows the particle count, not the domain) and counting-sorted, which also
-reorders the particle arrays for memory locality. Each particle keeps a Verlet list of the particles within
-r_i + r_j + D + skin, rebuilt only when some particle has moved more than skin / 2 (a reduction in the
-integration kernel) or left the domain; contact springs are carried over at a rebuild.
+reorders the particle arrays for memory locality. Verlet lists hold every pair closer than r_i + r_j + D + skin
+once (half lists, found through a half stencil of cells); they are rebuilt only when some particle has moved
+more than skin / 2 (a reduction in the integration kernel) or left the domain, and contact springs are carried
+over at a rebuild. One substep = two kernels (pair forces; everything else and the integration), launched
+through a Taichi compute graph.
 """
 from __future__ import annotations
 

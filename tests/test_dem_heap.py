@@ -14,9 +14,6 @@ def taichi_cpu():
         init_taichi("cpu")
 
 
-DEBUG = False
-
-
 def heap_angle_deg(positions, radii, r, sectors=8):
     """Lab-style measure: per azimuthal sector, the surface (highest particle top) in radial bins of one
     diameter; a line fitted between 15% and 85% of the heap half-width; mean over sectors."""
@@ -72,15 +69,11 @@ def lifted_cylinder_heap(preset="sand", radius=0.02, seed=0, overrides=None, lif
         soil.advance(0.05)
         elapsed += 0.05
         ke = soil.kinetic_energy()
-        if DEBUG:
-            print(round(elapsed, 2), ke, soil.n_particles, flush=True)
         peak = max(peak, ke)
         if elapsed > tube_height / lift and ke < 1e-4 * peak:
             break
         assert elapsed < 8.0
     p = soil.particles()
-    if DEBUG:
-        np.savez("/tmp/probe/heap_final.npz", **p)
     return heap_angle_deg(p["positions"], p["radii"], r)
 
 
