@@ -8,6 +8,10 @@ and cuts through it 0.1 m deep at 1 m/s (12 cm in 2000 substeps). Timed: `steps`
 DemSoil.advance in calls of 10 substeps (neighbour rebuilds and per-call overhead included), after a warm-up
 that compiles the kernels. Building and settling the bed is not timed. Sizes are nominal: the particle count
 of the settled bed is printed.
+
+Then the real-time factor of `scenes/zx120_excavation.yaml` at its default resolution (the whole coupled run:
+PyBullet machine, soil substeps, recorders; bed settling excluded), unless `--no-excavation`. Shorter or coarser:
+`--excavation-duration 5 --excavation-set soil.overrides.radius=0.08`.
 """
 from __future__ import annotations
 
@@ -60,6 +64,27 @@ def run(n: int, arch_steps: int, settle_time: float, radius: float) -> dict:
                 neighbours=soil.neighbor_entries / max(soil.n_particles, 1))
 
 
+def excavation(duration: float | None, sets: list[str], arch: str) -> dict:
+    """Run zx120_excavation.yaml (optionally shortened / overridden) and read its manifest."""
+    import json
+    import tempfile
+
+    from opera_taichi.paths import scenes_dir
+    from opera_taichi.scene import load_scene
+    from opera_taichi.simulation import run_scene
+
+    sets = list(sets) + [f"sim.arch={arch}"]
+    if duration is not None:
+        sets.append(f"sim.duration={duration}")
+    scene = load_scene(scenes_dir() / "zx120_excavation.yaml", sets)
+    with tempfile.TemporaryDirectory() as tmp:
+        result = run_scene(scene, out_dir=Path(tmp) / "run", arch=arch, quiet=True)
+        manifest = json.loads((result.out_dir / "manifest.json").read_text())
+    return dict(n=result.particles, sim=result.sim_time, wall=result.wall_time, rtf=result.real_time_factor,
+                rate=manifest.get("particle_steps_per_s") or 0.0, soil_dt=manifest["soil"]["soil_dt"],
+                setup=manifest.get("setup_wall_time_s", 0.0))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="10000,50000,200000", help="particle counts, comma separated")
@@ -67,6 +92,11 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=2000, help="timed substeps per size")
     parser.add_argument("--settle-time", type=float, default=0.5, help="bed settling time, s (cached)")
     parser.add_argument("--radius", type=float, default=0.02, help="particle radius, m")
+    parser.add_argument("--no-excavation", action="store_true", help="skip the zx120_excavation.yaml run")
+    parser.add_argument("--excavation-duration", type=float, default=None,
+                        help="simulated seconds of the excavation run (default: the scene's)")
+    parser.add_argument("--excavation-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="scene override for the excavation run, as for `cli.py run --set`")
     args = parser.parse_args(argv)
     from opera_taichi.backend import init_taichi
 
@@ -77,10 +107,17 @@ def main(argv=None) -> int:
     print(f"arch {arch}, cpu threads {threads}, os cpus {os.cpu_count()}")
     print(f"{'particles':>10} {'substeps':>9} {'wall s':>8} {'Mparticle-steps/s':>18} {'rebuilds':>9} "
           f"{'nbrs/particle':>14} {'dt s':>9} {'bed build s':>12}")
-    for size in (int(s) for s in args.sizes.split(",")):
+    for size in (int(s) for s in args.sizes.split(",") if s.strip()):
         r = run(size, args.steps, args.settle_time, args.radius)
         print(f"{r['n']:>10d} {r['steps']:>9d} {r['wall']:>8.2f} {r['rate'] / 1e6:>18.2f} {r['rebuilds']:>9d} "
               f"{r['neighbours']:>14.1f} {r['dt']:>9.2e} {r['build']:>12.1f}", flush=True)
+    if not args.no_excavation:
+        e = excavation(args.excavation_duration, args.excavation_set, args.arch)
+        print(f"\nzx120_excavation.yaml {' '.join(args.excavation_set)}".rstrip())
+        print(f"{'particles':>10} {'sim s':>7} {'wall s':>8} {'real-time factor':>17} {'Mparticle-steps/s':>18} "
+              f"{'soil dt s':>10} {'setup s':>8}")
+        print(f"{e['n']:>10d} {e['sim']:>7.2f} {e['wall']:>8.1f} {e['rtf']:>17.3f} {e['rate'] / 1e6:>18.2f} "
+              f"{e['soil_dt']:>10.2e} {e['setup']:>8.1f}", flush=True)
     return 0
 
 

@@ -18,8 +18,9 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
   surf_h[n, 8]  vec6 f32   history: slots 0-3 static faces, 4-7 tools; (tangential spring, rolling spring)
   nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  half neighbour list in CSR form (each pair once, held by one of
                 the two, i: entries nbr_off[i]..nbr_off[i+1]) and each pair's springs (seen from i)
-  rev_off[n+1], rev_e[E]   reverse lists: the entries in which each particle is the partner, not the holder
-  pair_out[E, 2] vec3 f64  force and torque each pair puts on its partner (this substep)
+  rev_off[n+1], rev_pos[E] reverse segments: a slot for each pair in which a particle is the partner, and
+                the slot of each entry
+  pair_out[E, 2] vec3 f64  force and torque each pair puts on its partner (this substep), by slot
   own[n, 2]     vec3 f64   force and torque from the pairs a particle lists itself
   prm[N_PRM]    f64        model parameters and static geometry (P_* indices)
   stat[N_STAT]  f64        diagnostics written by the kernels (S_* indices)
@@ -30,7 +31,7 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
 
 The neighbour list is a half list (each pair evaluated once, by the particle that holds it) without atomics:
 a pair adds the force on its holder to the holder's sum and writes the opposite force into a per-pair slot,
-which the partner gathers through its reverse list. Every sum has a fixed order, so results
+which the partner reads from its reverse segment. Every sum has a fixed order, so results
 do not depend on thread scheduling (deterministic for a seed, backend and thread count), and the two sides of a
 pair get exactly opposite forces: linear momentum is conserved to round-off.
 """
@@ -183,12 +184,13 @@ def cohesion_force(gap, prm: ti.template()):
 # ----------------------------------------------------------------------------------------------- pair forces
 @ti.kernel
 def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                pair_out: KIN, own: KIN, prm: F64_1, dt: ti.f64):
+                rev_pos: I32_1, pair_out: KIN, own: KIN, prm: F64_1, dt: ti.f64):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
-    The force and torque on i are summed into own[i]; what j receives is written to pair_out[e] (e: the
-    entry), and step() gathers those through the reverse lists. No atomics: deterministic for a given
-    thread count, and j gets exactly minus i's force (momentum is conserved to round-off).
+    The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
+    (e: the entry), i.e. into j's reverse segment, which step() reads sequentially (scattered stores are
+    cheaper than scattered loads). No atomics: deterministic for a given thread count, and j gets exactly
+    minus i's force (momentum is conserved to round-off).
     """
     for i in range(n_act):
         x_i = kin[i, 0]
@@ -211,7 +213,7 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
             r_j = p_j[0]
             r_sum = r_i + r_j
             reach = r_sum + reach_extra
-            f_j = vec3(0.0)
+            f_pair = vec3(0.0)  # on i
             t_j = vec3(0.0)
             touching = False
             if d2 < reach * reach and d2 > 0.0:
@@ -231,20 +233,19 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
                     v_c = (v_i + w_i.cross(lever_i)) - (kin[j, 1] + w_j.cross(r_j * n))
                     force, f_t, m_r, h = contact_law(n, -gap, v_c, w_i - w_j, sqrt_mk, sqrt_ik, 0.25 * r_sum,
                                                      nbr_h[e], k, mu, mu_r, prm, dt)
-                    f += force
+                    f_pair = force
                     t += lever_i.cross(f_t) + m_r
-                    f_j = -force
                     t_j = (r_j * n).cross(-f_t) - m_r
                     nbr_h[e] = h
-                f_coh = cohesion_force(gap, prm) * n
-                f -= f_coh
-                f_j += f_coh
+                f_pair -= cohesion_force(gap, prm) * n
             if not touching:
                 h_old = nbr_h[e]
                 if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
                     nbr_h[e] = vec6f(0.0)
-            pair_out[e, 0] = f_j
-            pair_out[e, 1] = t_j
+            f += f_pair
+            q = rev_pos[e]
+            pair_out[q, 0] = -f_pair
+            pair_out[q, 1] = t_j
         own[i, 0] = f
         own[i, 1] = t
 
@@ -316,13 +317,17 @@ def _face(fid, pit, x, r, prm: ti.template()):
                 # wall rectangle spans floor..0; above ground its top edge is the (rounded) pit rim
                 axis = (f - 1) // 2
                 side = (f - 1) % 2
+                # a pit wall on (or beyond) the domain boundary is left to the smooth domain wall there
+                on_boundary = prm[b + axis] <= prm[P_DMIN + axis]
+                if side == 1:
+                    on_boundary = prm[b + 3 + axis] >= prm[P_DMAX + axis]
                 d = vec3(0.0)
                 d[axis] = x[axis] - prm[b + axis]
                 if side == 1:
                     d[axis] = x[axis] - prm[b + 3 + axis]
                 d[2] = x[2] - ti.min(ti.max(x[2], z_floor), prm[P_WALL_TOP])
                 dist = d.norm()
-                if dist > 0.0:
+                if dist > 0.0 and not on_boundary:
                     n = d / dist
                     overlap = r - dist
     return overlap, n, buried
@@ -391,7 +396,7 @@ def _rotation_from_vector(phi):
 # ----------------------------------------------------------------------------------------------- integration
 @ti.kernel
 def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KIN, rev_off: I32_1,
-         rev_e: I32_1, pair_out: KIN, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
+         pair_out: KIN, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
          prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64) -> ti.f64:
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
     ground and walls, tools), advance it (symplectic Euler), then move the tools.
@@ -420,10 +425,9 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KI
                 q2 = p[3] * p[3]  # sqrt(m): the effective mass against ground, walls and tools is m
                 force = own[i, 0]
                 torque = own[i, 1]
-                for q in range(rev_off[i], rev_off[i + 1]):
-                    e = rev_e[q]
-                    force += pair_out[e, 0]
-                    torque += pair_out[e, 1]
+                for q in range(rev_off[i], rev_off[i + 1]):  # what the pairs held by others put on i
+                    force += pair_out[q, 0]
+                    torque += pair_out[q, 1]
                 force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
                 buried = False
                 # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
@@ -446,9 +450,17 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KI
                                 hist = surf_h[i, slot]
                             lever = -r * n
                             sqrt_k = prm[P_SQRT_KWALL]
+                            # domain walls are symmetry planes (the soil beyond them would shear with it):
+                            # smooth, so a narrow slice or a bed cut by the domain is not held up by them;
+                            # the ground and pit faces are rough
+                            mu_face = prm[P_MU_WALL]
+                            mu_r_face = prm[P_MU_R]
+                            if fid < 4:
+                                mu_face = 0.0
+                                mu_r_face = 0.0
                             f_c, f_t, m_r, h_new = contact_law(n, overlap, v + w.cross(lever), w, q2 * sqrt_k,
                                                                ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r, hist,
-                                                               prm[P_K_WALL], prm[P_MU_WALL], prm[P_MU_R], prm, dt)
+                                                               prm[P_K_WALL], mu_face, mu_r_face, prm, dt)
                             force += f_c
                             torque += lever.cross(f_t) + m_r
                             if slot >= 0:
@@ -737,9 +749,10 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
 
 
 @ti.kernel
-def build_reverse(n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_e: I32_1):
-    """Reverse lists: for each j, the entries (held by other particles) of the pairs with j, in entry
-    order (serial: deterministic, and cheap next to the neighbour search)."""
+def build_reverse(n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_pos: I32_1):
+    """Reverse lists: each particle j gets a segment rev_off[j]..rev_off[j+1] with one slot per pair held by
+    another particle; rev_pos[e] is the slot of entry e (slots in entry order; serial: deterministic, and
+    cheap next to the neighbour search)."""
     for i in range(n_act + 1):
         rev_off[i] = 0
     ti.loop_config(serialize=True)
@@ -753,7 +766,7 @@ def build_reverse(n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, r
     for i in range(n_act):
         for e in range(nbr_off[i], nbr_off[i + 1]):
             j = nbr_j[e]
-            rev_e[rev_off[j]] = e
+            rev_pos[e] = rev_off[j]
             rev_off[j] += 1
     ti.loop_config(serialize=True)
     for i in range(n_act):  # the fill advanced each start to the next one's: shift back

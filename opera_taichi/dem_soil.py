@@ -30,11 +30,15 @@ from .paths import cache_dir
 from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
 from .tool_sdf import tool_sdf
 
-SOLVER_VERSION = 8
+SOLVER_VERSION = 12
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
 POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
+# Beds are poured with the soil's own friction and rolling resistance (smooth pit walls, no cohesion): a loose,
+# as-deposited packing whose strength is near the critical state. A frictionless pour packs densely (~0.6) and
+# that bed is several times too strong against walls and blades (peak dilatancy; see soil.py).
+POUR_FRICTIONLESS = False
 
 
 def _vec3(value, key: str) -> np.ndarray:
@@ -101,7 +105,7 @@ def _substep_graph():
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
             kinds = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr_j=(ti.i32, 1),
                          nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
-                         flags=(ti.i32, 1), x_ref=(dem.vec3, 1), rev_off=(ti.i32, 1), rev_e=(ti.i32, 1),
+                         flags=(ti.i32, 1), x_ref=(dem.vec3, 1), rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1),
                          surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2), tools=(ti.f64, 2), tool_acc=(ti.f64, 2),
                          sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2))
             sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in kinds.items()}
@@ -116,8 +120,8 @@ def _substep_graph():
     return _GRAPH["graph"]
 
 
-_PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "pair_out", "own", "prm", "dt")
-_STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "rev_e", "pair_out", "surf_id", "surf_h",
+_PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "pair_out", "own", "prm", "dt")
+_STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "pair_out", "surf_id", "surf_h",
               "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping")
 
 
@@ -146,6 +150,7 @@ class DemSoil:
         self.n_act = 0
         self._entries = 0
         self.rebuilds = 0       # neighbour-list rebuilds so far (diagnostics)
+        self.bed_packing: float | None = None  # solid fraction of freshly settled beds (None: loaded or none)
         self._tool_names: list[str] = []
         self._sdf_blocks: list[np.ndarray] = []
         self._tools_host = np.zeros((dem.MAX_TOOLS, dem.T_WIDTH))
@@ -225,7 +230,7 @@ class DemSoil:
         entries = max(entries, 1)
         self._nbr_j, self._nbr_j2 = (ti.ndarray(ti.i32, entries) for _ in range(2))
         self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, entries) for _ in range(2))
-        self._rev_e = ti.ndarray(ti.i32, entries)
+        self._rev_pos = ti.ndarray(ti.i32, entries)
         self._pair_out = ti.ndarray(dem.vec3, (entries, 2))
 
     def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
@@ -279,7 +284,7 @@ class DemSoil:
             grown = int(entries * 1.25) + 64
             self._nbr_j2 = ti.ndarray(ti.i32, grown)
             self._nbr_h2 = ti.ndarray(dem.vec6f, grown)
-            self._rev_e = ti.ndarray(ti.i32, grown)
+            self._rev_pos = ti.ndarray(ti.i32, grown)
             self._pair_out = ti.ndarray(dem.vec3, (grown, 2))
         dem.fill_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
                            self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
@@ -287,7 +292,7 @@ class DemSoil:
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
-        dem.build_reverse(n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_e)
+        dem.build_reverse(n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_pos)
         self.n_act = int(n_act)
         self._entries = int(entries)
 
@@ -295,7 +300,7 @@ class DemSoil:
     def _cache_key(self, settle_time: float) -> str:
         spec = dict(version=SOLVER_VERSION, micro=asdict(self.micro), beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
                     domain=(self.domain_min.tolist(), self.domain_max.tolist()), seed=self.seed, dt=self.dt,
-                    gravity=self.gravity.tolist(), settle_time=settle_time)
+                    gravity=self.gravity.tolist(), settle_time=settle_time, frictionless=POUR_FRICTIONLESS)
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:32]
 
     def _build_beds(self, settle_time: float) -> None:
@@ -303,6 +308,7 @@ class DemSoil:
         if self.use_cache and path.is_file():
             try:
                 self._load_state(path)
+                self.bed_packing = self._measure_packing()
                 return
             except (OSError, KeyError, ValueError):
                 pass  # unreadable cache entry: settle again
@@ -347,11 +353,15 @@ class DemSoil:
         fall = max(float(np.max(self.particles()["positions"][:, 2])) - min(b[0][2] for b in self.beds), 0.0)
         t_fall = math.sqrt(2.0 * fall / GRAVITY) + 0.05
         quiet = 0.02 * math.sqrt(GRAVITY * self.micro.radius)  # max speed considered at rest
-        # pour without friction, rolling resistance or cohesion: the spheres pack densely (~0.6 solid fraction,
-        # which the solid density assumes) instead of freezing in a loose, arched arrangement; the pit walls
-        # reach up meanwhile, so the column above the pit cannot spill over the rim
+        # pour with the soil's friction and rolling resistance (POUR_FRICTIONLESS) but without cohesion and with
+        # smooth pit walls (a rough tall column would hang on them); the pit walls reach up meanwhile, so the
+        # column above the pit cannot spill over the rim. The lattice holds 0.66 x the pit volume of solid:
+        # enough to overfill it at any packing below 0.66.
         loose = self._parameters()
-        loose[[dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]] = 0.0
+        if POUR_FRICTIONLESS:
+            loose[[dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]] = 0.0
+        else:
+            loose[[dem.P_MU_WALL, dem.P_COH_F]] = 0.0
         loose[dem.P_WALL_TOP] = 1e30
         self._prm.from_numpy(loose)
         self._run_until_quiet(max(0.6 * settle_time, 2.0 * t_fall), t_fall, quiet, SETTLE_DAMPING)  # it must land
@@ -360,10 +370,12 @@ class DemSoil:
             [dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]]
         self._prm.from_numpy(loose)
         self._run_until_quiet(max(0.2 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
+        self._match_bulk_density()  # before the rest of the settling, so the bed rests under its final weight
         self._prm.from_numpy(self._parameters())
         self._trim_to_beds()
-        self._run_until_quiet(max(0.1 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
-        self._run_until_quiet(max(0.1 * settle_time, 1e-3), 0.0, quiet, 0.0)
+        # a loose (friction-poured) bed keeps creeping for a while after levelling: rest it until quiet
+        self._run_until_quiet(max(0.5 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
+        self._run_until_quiet(max(0.3 * settle_time, 1e-3), 0.0, quiet, 0.0)
         kin = self._kin.to_numpy()
         kin[:, 1:] = 0.0
         self._kin.from_numpy(kin)
@@ -380,6 +392,36 @@ class DemSoil:
             elapsed += chunk * self.dt
             if elapsed >= at_least and self._totals()[5] < quiet:
                 break
+
+    def _measure_packing(self) -> float | None:
+        """Solid volume of the active particles centred in the beds over the beds' volume."""
+        flags = self._flags.to_numpy()[:self._n]
+        pos = self._kin.to_numpy()[:self._n, 0]
+        radii = self._prop.to_numpy()[:self._n, 0]
+        inside = np.zeros(len(pos), bool)
+        volume = 0.0
+        for b_min, b_max in self.beds:
+            inside |= np.all((pos >= b_min) & (pos <= b_max), axis=1)
+            volume += float(np.prod(b_max - b_min))
+        solid = float(np.sum(4.0 / 3.0 * math.pi * radii[inside & (flags == 1)] ** 3))
+        return solid / volume if solid > 0.0 and volume > 0.0 else None
+
+    def _match_bulk_density(self) -> None:
+        """Scale the particle masses so the settled beds have the user's bulk density.
+
+        How densely spheres pack depends on their friction and rolling resistance (a poured bed of sand-like
+        spheres packs at ~0.45-0.55 here, not the 0.6 that SoilMicro.solid_density assumes), so the solid
+        density is fixed from the measured packing: solid volume of the particles centred in the beds over the
+        beds' volume."""
+        self.bed_packing = self._measure_packing()
+        if not self.bed_packing:
+            return
+        prop = self._prop.to_numpy()
+        scale = self.micro.bulk_density / (self.micro.solid_density * self.bed_packing)
+        prop[:, 1] *= scale
+        prop[:, 2] /= scale
+        prop[:, 3] = prop[:, 1] ** 0.25
+        self._prop.from_numpy(prop)
 
     def _trim_to_beds(self) -> None:
         """Remove particles centred above their bed's top less half a radius: each bed is full and level, its
@@ -472,7 +514,7 @@ class DemSoil:
         neighbour lists when needed."""
         args = dict(kin=self._kin, prop=self._prop, flags=self._flags, x_ref=self._x_ref, nbr_off=self._nbr_off,
                     nbr_j=self._nbr_j, nbr_h=self._nbr_h, pair_out=self._pair_out, own=self._own,
-                    rev_off=self._rev_off, rev_e=self._rev_e, surf_id=self._surf_id, surf_h=self._surf_h,
+                    rev_off=self._rev_off, rev_pos=self._rev_pos, surf_id=self._surf_id, surf_h=self._surf_h,
                     tools=self._tools, tool_acc=self._tool_acc, sdf=self._sdf, prm=self._prm, stat=self._stat,
                     partial=self._partial, n_act=self.n_act, dt=h, bulk_damping=damping)
         graph = _substep_graph()

@@ -35,8 +35,11 @@ def test_settled_bed_fills_its_pit_at_the_bulk_density(bed):
     assert np.all(p["positions"] - r >= lo - 1e-3) and np.all(p["positions"][:, :2] + r[:, 0:1] <= hi[:2] + 1e-3)
     assert np.max(p["positions"][:, 2] + 0.5 * p["radii"]) <= 1e-3
     density = bed.mass_budget()["particles"] / np.prod(hi - lo)
-    # 0.4 x 0.4 m is only 10 diameters: the wall and surface layers pack looser than the 0.6 assumed inside
-    assert 0.8 * bed.micro.bulk_density < density <= 1.02 * bed.micro.bulk_density
+    # however loosely the spheres packed, DemSoil matched their masses to the bulk density of the filled pit
+    # (measured on the overfilled pit before levelling: the levelled top layer of a 10-diameter pit packs a
+    # few percent looser)
+    assert density == pytest.approx(bed.micro.bulk_density, rel=0.05)
+    assert 0.3 < bed.bed_packing < 0.65
 
 
 def test_settled_bed_drifts_less_than_a_millimetre_in_a_second(bed):
@@ -55,9 +58,10 @@ def test_heightmap_is_the_soil_surface_or_the_static_ground(bed):
     outside = np.abs(xs) > 0.2 + 1.2 * r
     surface = z[np.ix_(inner, inner)]
     # a bed trimmed level with the pit top, rough at the grain scale: no grain stands more than r/2 above the
-    # top, nowhere is the surface more than a diameter below it, and on average within a radius
+    # top, no hole reaches the floor, and on average within a radius
     assert np.all(surface <= 0.5 * r + 1e-3)
-    assert np.all(surface > -2.0 * r) and -r < surface.mean() < 0.5 * r
+    # a friction-poured (loose) bed has gaps between its top grains up to ~1.5 diameters deep; the floor is 8 below
+    assert np.all(surface > -4.0 * r) and -r < surface.mean() < 0.5 * r
     assert np.all(z[outside, :] == 0.0) and np.all(z[:, outside] == 0.0)
     # each node carries the highest point a ball of the grain radius resting on the grains reaches, less r
     p = bed.particles()

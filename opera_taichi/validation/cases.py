@@ -287,7 +287,8 @@ def runout_length(pos: np.ndarray, rad: np.ndarray, bin_width: float) -> float:
     """Front of the contiguous deposit along x from the back wall (x = 0): the first empty bin ends it."""
     edge = pos[:, 0] + rad
     counts = np.bincount(np.floor(np.maximum(edge, 0.0) / bin_width).astype(int))
-    empty = np.flatnonzero(counts == 0)
+    first = int(np.flatnonzero(counts)[0])  # a grain against the back wall reaches past the first bin
+    empty = first + np.flatnonzero(counts[first:] == 0)
     last = (empty[0] if len(empty) else len(counts))
     return float(edge[(edge < last * bin_width)].max())
 

@@ -75,6 +75,32 @@ def derived_gates(results: list[dict]) -> list[dict]:
     return rows
 
 
+CALIBRATION = """## Calibration procedure
+
+The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user controls per soil is in
+`soil.overrides` (docs/scene_reference.md). The knobs, in the order to tune them:
+
+1. **Bed state.** Beds are poured with the soil's own friction and rolling resistance (loose, as deposited)
+   and the particle masses are then scaled so the settled bed has the given bulk `density` (`DemSoil.bed_packing`
+   reports the solid fraction reached). Nothing to tune; a dense (frictionless) pour made every bed 4-10 x too
+   strong against walls and blades.
+2. **Rolling resistance** `rolling_resistance` (default min(0.35, 0.35 tan(phi) / tan(33 deg))) sets how the soil
+   flows and heaps. Tune it first with the column collapse and the repose heap:
+   `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
+   `opera-taichi validate-physics repose --param preset=NAME`, changing `soil.rolling_resistance` through a
+   preset override, until the run-out sits in the Lube/Lajeunesse band and the heap matches the measured repose
+   angle. Above ~0.35 poured beds become very loose (solid fraction below 0.4) and weak; below ~0.15 heaps
+   stay near 20 deg.
+3. **Friction angle** `friction_angle_deg` (particle friction tan(phi)): check with the passive wall and the blade,
+   `validate-physics passive_wall --param height=0.3` and `validate-physics blade_cut --param depth=0.3`, which
+   compare with Rankine and the earthmoving equation at the same phi.
+4. **Cohesion** `cohesion` (Pa; Rumpf's bond force, see soil.py): check with the vertical cut at 0.6 and 2 x the
+   Culmann height, `validate-physics vertical_cut --param preset=NAME --param height=H`; raise or lower the
+   cohesion until the face stands below and fails above the critical height.
+5. Rerun `opera-taichi validate-physics all` and keep this report with the soil's parameters.
+"""
+
+
 def _fmt(v) -> str:
     if isinstance(v, bool):
         return "stood" if v else "collapsed"
@@ -117,6 +143,7 @@ def write_report(results: list[dict], report_path: Path, command: str) -> Path:
             lines.append(f"| {d['label']} ({d['gate']}) | {d['measured']:.3f} | {d['reference']:.3f} | "
                          f"{d['relative_error']:+.1%} | {'pass' if d['passed'] else 'FAIL'} |")
     lines += [""] + [f"![{name}]({plot_dir.name}/{path.name})" for name, path in plots] + [""]
+    lines += CALIBRATION.splitlines() + [""]
     report_path.write_text("\n".join(lines))
     (plot_dir / "metrics.json").write_text(json.dumps(
         [{k: v for k, v in r.items() if k != "extra"} for r in results], indent=1, default=float) + "\n")
