@@ -20,7 +20,9 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
                 the two, i: entries nbr_off[i]..nbr_off[i+1]) and each pair's springs (seen from i)
   rev_off[n+1], rev_pos[E] reverse segments: a slot for each pair in which a particle is the partner, and
                 the slot of each entry
-  pair_out[E, 2] vec3 f64  force and torque each pair puts on its partner (this substep), by slot
+  pair_out[E, 2] vec3 f32  force and torque each pair puts on its partner (this substep), by slot; the holder
+                adds the same f32-rounded force with the opposite sign, so the pair stays exactly antisymmetric
+                (f32 halves the scattered stores, the pair kernel's main memory traffic)
   own[n, 2]     vec3 f64   force and torque from the pairs a particle lists itself
   prm[N_PRM]    f64        model parameters and static geometry (P_* indices)
   stat[N_STAT]  f64        diagnostics written by the kernels (S_* indices)
@@ -100,6 +102,7 @@ vec3 = ti.types.vector(3, ti.f64)
 vec4 = ti.types.vector(4, ti.f64)
 vec6f = ti.types.vector(6, ti.f32)
 vec4f = ti.types.vector(4, ti.f32)
+vec3f = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f64)
 
 KIN = ti.types.ndarray(dtype=vec3, ndim=2)
@@ -112,6 +115,7 @@ I64_1 = ti.types.ndarray(dtype=ti.i64, ndim=1)
 F64_1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 F64_2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
 HIST = ti.types.ndarray(dtype=vec6f, ndim=2)
+PAIR_OUT = ti.types.ndarray(dtype=vec3f, ndim=2)
 SDF = ti.types.ndarray(dtype=vec4f, ndim=1)
 
 
@@ -184,7 +188,7 @@ def cohesion_force(gap, prm: ti.template()):
 # ----------------------------------------------------------------------------------------------- pair forces
 @ti.kernel
 def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                rev_pos: I32_1, pair_out: KIN, own: KIN, prm: F64_1, dt: ti.f64):
+                rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, prm: F64_1, dt: ti.f64):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -242,10 +246,11 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
                 h_old = nbr_h[e]
                 if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
                     nbr_h[e] = vec6f(0.0)
-            f += f_pair
+            f_out = ti.cast(-f_pair, ti.f32)
+            f -= ti.cast(f_out, ti.f64)  # exactly minus what j gets
             q = rev_pos[e]
-            pair_out[q, 0] = -f_pair
-            pair_out[q, 1] = t_j
+            pair_out[q, 0] = f_out
+            pair_out[q, 1] = ti.cast(t_j, ti.f32)
         own[i, 0] = f
         own[i, 1] = t
 
@@ -396,7 +401,7 @@ def _rotation_from_vector(phi):
 # ----------------------------------------------------------------------------------------------- integration
 @ti.kernel
 def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KIN, rev_off: I32_1,
-         pair_out: KIN, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
+         pair_out: PAIR_OUT, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
          prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64) -> ti.f64:
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
     ground and walls, tools), advance it (symplectic Euler), then move the tools.
@@ -426,8 +431,8 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KI
                 force = own[i, 0]
                 torque = own[i, 1]
                 for q in range(rev_off[i], rev_off[i + 1]):  # what the pairs held by others put on i
-                    force += pair_out[q, 0]
-                    torque += pair_out[q, 1]
+                    force += ti.cast(pair_out[q, 0], ti.f64)
+                    torque += ti.cast(pair_out[q, 1], ti.f64)
                 force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
                 buried = False
                 # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot

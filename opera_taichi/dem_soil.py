@@ -104,7 +104,7 @@ def _substep_graph():
         try:
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
             kinds = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr_j=(ti.i32, 1),
-                         nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
+                         nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3f, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
                          flags=(ti.i32, 1), x_ref=(dem.vec3, 1), rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1),
                          surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2), tools=(ti.f64, 2), tool_acc=(ti.f64, 2),
                          sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2))
@@ -231,7 +231,7 @@ class DemSoil:
         self._nbr_j, self._nbr_j2 = (ti.ndarray(ti.i32, entries) for _ in range(2))
         self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, entries) for _ in range(2))
         self._rev_pos = ti.ndarray(ti.i32, entries)
-        self._pair_out = ti.ndarray(dem.vec3, (entries, 2))
+        self._pair_out = ti.ndarray(dem.vec3f, (entries, 2))
 
     def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
         """Replace every particle (state only; contact history starts empty) and restart the mass budget.
@@ -285,7 +285,7 @@ class DemSoil:
             self._nbr_j2 = ti.ndarray(ti.i32, grown)
             self._nbr_h2 = ti.ndarray(dem.vec6f, grown)
             self._rev_pos = ti.ndarray(ti.i32, grown)
-            self._pair_out = ti.ndarray(dem.vec3, (grown, 2))
+            self._pair_out = ti.ndarray(dem.vec3f, (grown, 2))
         dem.fill_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
                            self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
                            self._prm, self._mask)
