@@ -13,7 +13,9 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
   kin[n, 3]     vec3 f64   position, velocity, angular velocity
   prop[n]       vec4 f64   radius, mass, 1/mass, mass^(1/4) (pair damping without a per-pair division)
   flags[n]      i32        1 active, 0 inactive (left the domain)
-  x_ref[n]      vec3 f64   position at the last neighbour build (Verlet skin criterion)
+  x_ref[n]      vec4 f64   position at the last neighbour build (Verlet skin criterion) and its clearance to the
+                static faces: a particle moves at most skin/2 before the next build, so one whose clearance then
+                exceeded r + skin/2 cannot touch a face and skips the face search
   surf_id[n, 4] i32        static face held by each wall-contact slot (-1 free)
   surf_h[n, 8]  vec6 f32   history: slots 0-3 static faces, 4-7 tools; (tangential spring, rolling spring)
   nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  half neighbour list in CSR form (each pair once, held by one of
@@ -106,7 +108,7 @@ vec3f = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f64)
 
 KIN = ti.types.ndarray(dtype=vec3, ndim=2)
-KIN1 = ti.types.ndarray(dtype=vec3, ndim=1)
+REF = ti.types.ndarray(dtype=vec4, ndim=1)
 PROP = ti.types.ndarray(dtype=vec4, ndim=1)
 I32_1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I32_2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
@@ -400,7 +402,7 @@ def _rotation_from_vector(phi):
 
 # ----------------------------------------------------------------------------------------------- integration
 @ti.kernel
-def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KIN, rev_off: I32_1,
+def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1,
          pair_out: PAIR_OUT, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
          prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64) -> ti.f64:
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
@@ -437,8 +439,15 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KI
                 buried = False
                 # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
                 ids = ti.Vector([surf_id[i, 0], surf_id[i, 1], surf_id[i, 2], surf_id[i, 3]])
-                pit = _pit_of(x, prm)
-                if _clearance(x, pit, prm) < r or ids.max() >= 0:  # most particles are far from every face
+                ref = x_ref[i]
+                pit = -1
+                near = ids.max() >= 0
+                if not near and ref[3] < r + prm[P_SKIN]:  # most particles are far from every face
+                    pit = _pit_of(x, prm)
+                    near = _clearance(x, pit, prm) < r
+                elif near:
+                    pit = _pit_of(x, prm)
+                if near:
                     touched = ti.Vector([0, 0, 0, 0])
                     n_faces = 5
                     if pit >= 0:
@@ -531,7 +540,7 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: KIN1, own: KI
                     kin[i, 0] = x
                     kin[i, 1] = v
                     kin[i, 2] = w
-                    dx = x - x_ref[i]
+                    dx = x - vec3(ref[0], ref[1], ref[2])
                     speed2 = v.dot(v)
                     if not (speed2 < HUGE and dx.dot(dx) < HUGE):  # NaN fails every comparison
                         nonfinite += 1.0
@@ -718,7 +727,7 @@ def _old_history(o_i, o_j, old_off: ti.template(), old_j: ti.template(), old_h: 
 @ti.kernel
 def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, order: I32_1,
                    old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                   x_ref: KIN1, prm: F64_1, mask: ti.i32):
+                   x_ref: REF, prm: F64_1, mask: ti.i32):
     """Write the half lists counted by count_neighbors, carrying each pair's springs over from the old lists.
 
     Particles are already sorted (new index = slot; order[new] = old). Also records the positions the skin
@@ -750,7 +759,7 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
                             h = _old_history(o_i, order[j], old_off, old_j, old_h)
                         nbr_h[e] = h
                         e += 1
-        x_ref[i] = x_i
+        x_ref[i] = vec4(x_i[0], x_i[1], x_i[2], _clearance(x_i, _pit_of(x_i, prm), prm))
 
 
 @ti.kernel

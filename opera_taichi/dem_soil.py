@@ -30,7 +30,7 @@ from .paths import cache_dir
 from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
 from .tool_sdf import tool_sdf
 
-SOLVER_VERSION = 12
+SOLVER_VERSION = 13
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
@@ -105,7 +105,7 @@ def _substep_graph():
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
             kinds = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr_j=(ti.i32, 1),
                          nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3f, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
-                         flags=(ti.i32, 1), x_ref=(dem.vec3, 1), rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1),
+                         flags=(ti.i32, 1), x_ref=(dem.vec4, 1), rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1),
                          surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2), tools=(ti.f64, 2), tool_acc=(ti.f64, 2),
                          sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2))
             sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in kinds.items()}
@@ -212,7 +212,7 @@ class DemSoil:
         self._cell, self._cell2 = (nd(ti.i64, cap) for _ in range(2))
         self._surf_id, self._surf_id2 = (nd(ti.i32, (cap, dem.WALL_SLOTS)) for _ in range(2))
         self._surf_h, self._surf_h2 = (nd(dem.vec6f, (cap, dem.SURF_SLOTS)) for _ in range(2))
-        self._x_ref = nd(dem.vec3, cap)
+        self._x_ref = nd(dem.vec4, cap)
         self._own = nd(dem.vec3, (cap, 2))
         self._partial = nd(ti.f64, (cap // dem.BLOCK + 1, dem.PART_WIDTH))
         self._rev_off = nd(ti.i32, cap + 1)

@@ -22,7 +22,7 @@ TANGENTIAL_RATIO = 2.0 / 7.0
 WALL_STIFFNESS_RATIO = 2.0   # ground, walls and tools: k = 2 k_n, the same surface compliance as a sphere
 
 # Rolling resistance (EPSD) for spheres with mu = tan(phi): mu_r = min(ROLLING_MAX, ROLLING_PER_TAN_PHI tan(phi)),
-# 0.35 for sand at 33 deg. Calibrated on coarse runs, beds poured with friction and their masses matched to the
+# 0.3 for sand at 33 deg. Calibrated on coarse runs, beds poured with friction and their masses matched to the
 # bulk density. Sand (33 deg) lifted-cylinder heaps (tests/test_dem_heap.py): mu_r 0.35 -> 28.8 deg, 0.45 -> 29.5
 # (0.15 -> ~20); quasi-2-D column collapse at a = 1, 8 diameters across L0 (band 1.2-1.8): 0.3 -> run-out 1.37,
 # 0.4 -> 1.16; passive-wall peak at 5 diameters across H: 0.3 -> 1.31 x Rankine, 0.4 -> 0.53 x (the pour gets
@@ -158,7 +158,7 @@ def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
 
 
 def calibrated_rolling_resistance(friction_angle: float) -> float:
-    """Rolling resistance of the default mapping: proportional to tan(phi), 0.35 at 33 deg and above (see above)."""
+    """Rolling resistance of the default mapping: proportional to tan(phi), capped at ROLLING_MAX (0.3 at 33 deg) (see above)."""
     return min(ROLLING_MAX, ROLLING_PER_TAN_PHI * math.tan(friction_angle))
 
 
@@ -224,8 +224,8 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     - Damping gamma_n = c sqrt(m_eff k), c = 2(-ln e)/sqrt(pi^2 + ln^2 e): restitution e for every pair
       (`damping`; DemSoil re-tunes c for its substep with damping_for_step, see there).
     - Tangential spring k_t = 2/7 k_n (same period as the normal one) with history, Coulomb cap mu F_n,
-      mu = tan(phi). Rolling resistance (EPSD, type C): mu_r = min(0.35, ROLLING_PER_TAN_PHI tan(phi)) (0.35 at
-      33 deg), calibrated on column collapse and passive-wall runs (see ROLLING_PER_TAN_PHI).
+      mu = tan(phi). Rolling resistance (EPSD, type C): mu_r = min(ROLLING_MAX, ROLLING_PER_TAN_PHI tan(phi))
+      (0.3 at 33 deg), calibrated on column collapse and passive-wall runs (see ROLLING_PER_TAN_PHI).
     - Solid density rho / SOLID_FRACTION is a first guess: DemSoil scales the masses of a settled bed so that it
       has the bulk density rho at the packing it actually reached.
     - Cohesion: Rumpf sigma_t = phi_s Z F / (pi d^2) with phi_s = 0.6, Z = 6, and Mohr-Coulomb

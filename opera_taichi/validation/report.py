@@ -84,7 +84,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    and the particle masses are then scaled so the settled bed has the given bulk `density` (`DemSoil.bed_packing`
    reports the solid fraction reached). Nothing to tune; a dense (frictionless) pour made every bed 4-10 x too
    strong against walls and blades.
-2. **Rolling resistance** `rolling_resistance` (default min(0.35, 0.35 tan(phi) / tan(33 deg))) sets how the soil
+2. **Rolling resistance** `rolling_resistance` (default min(0.3, 0.3 tan(phi) / tan(33 deg))) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
    `opera-taichi validate-physics repose --param preset=NAME`, changing `soil.rolling_resistance` through a
