@@ -234,14 +234,16 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
                     qq = p_i[3] * p_j[3]
                     sqrt_mk = ti.f64(SQRT_HALF) * qq * sqrt_k
                     sqrt_ik = ti.f64(SQRT_FIFTH) * qq * 0.5 * r_sum * sqrt_k
-                    lever_i = -r_i * n
+                    # contact points at -r_i n (on i) and +r_j n (on j): one cross product each for the relative
+                    # contact velocity and for both torques
                     w_j = kin[j, 2]
-                    v_c = (v_i + w_i.cross(lever_i)) - (kin[j, 1] + w_j.cross(r_j * n))
+                    v_c = (v_i - kin[j, 1]) - (r_i * w_i + r_j * w_j).cross(n)
                     force, f_t, m_r, h = contact_law(n, -gap, v_c, w_i - w_j, sqrt_mk, sqrt_ik, 0.25 * r_sum,
                                                      nbr_h[e], k, mu, mu_r, prm, dt)
                     f_pair = force
-                    t += lever_i.cross(f_t) + m_r
-                    t_j = (r_j * n).cross(-f_t) - m_r
+                    c = n.cross(f_t)
+                    t += m_r - r_i * c
+                    t_j = -r_j * c - m_r
                     nbr_h[e] = h
                 f_pair -= cohesion_force(gap, prm) * n
             if not touching:
