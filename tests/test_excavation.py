@@ -78,12 +78,13 @@ def test_trench_is_at_least_0_3_m_deep_along_the_dig_path(run):
     cells = (x >= PATH_X[0]) & (x <= PATH_X[1])
     row = np.argmin(np.abs(y - PATH_Y))
     dz = (after["z"] - before["z"])[cells, row]
-    # the raised, loaded bucket hangs over the near end of the path (its soil reads as high ground there), so the
-    # trench is asked over at least 0.8 m of the 2 m path, not all of it
+    # the path ends with the loaded bucket brought in over x = 3-4.2, off the trench (soil in a bucket hanging
+    # over the trench would read as high ground). Measured: 0.46-0.73 m deep over all 2 m; asked: 1.5 m, leaving
+    # the ends of the path (entry at x = 6.2, curl at 4.3) to the slopes of the cut
     deep = dz <= -0.3
     cell = float(x[1] - x[0])
     longest = max((len(s) for s in "".join("1" if d else "0" for d in deep).split("0")), default=0) * cell
-    assert longest >= 0.8, dz
+    assert longest >= 1.5, dz
 
 
 @pytest.mark.slow
