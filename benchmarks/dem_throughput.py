@@ -6,8 +6,8 @@ Each size is a square pit 0.3 m deep of the `sand` preset (radius 0.02 m), fille
 on disk; the first run of a size takes minutes), then a 0.04 m thick blade 0.5 m wide enters it from the side
 and cuts through it 0.1 m deep at 1 m/s (12 cm in 2000 substeps). Timed: `steps` substeps through
 DemSoil.advance in calls of 10 substeps (neighbour rebuilds and per-call overhead included), after a warm-up
-that compiles the kernels, in 5 segments: the median rate is reported with the slowest and fastest segment. Building and settling the bed is not timed. Sizes are nominal: the particle count
-of the settled bed is printed.
+that compiles the kernels, in 5 segments: the median rate is reported with the slowest and fastest segment.
+Building and settling the bed is not timed. Sizes are nominal: the particle count of the settled bed is printed.
 
 Then the real-time factor of `scenes/zx120_excavation.yaml` at its default resolution (the whole coupled run:
 PyBullet machine, soil substeps, recorders; bed settling excluded), unless `--no-excavation`. Shorter or coarser:
@@ -113,13 +113,13 @@ def main(argv=None) -> int:
 
     threads = ti.lang.impl.current_cfg().cpu_max_num_threads if arch == "x64" else None
     print(f"arch {arch}, cpu threads {threads}, os cpus {os.cpu_count()}")
-    print(f"{'particles':>10} {'substeps':>9} {'wall s':>8} {'Mparticle-steps/s':>18} {'min-max':>11} {'rebuilds':>9} "
-          f"{'nbrs/particle':>14} {'dt s':>9} {'bed build s':>12}")
+    print(f"{'particles':>10} {'substeps':>9} {'wall s':>8} {'Mparticle-steps/s':>18} {'min-max':>11} "
+          f"{'rebuilds':>9} {'nbrs/particle':>14} {'dt s':>9} {'bed build s':>12}")
     for size in (int(s) for s in args.sizes.split(",") if s.strip()):
         r = run(size, args.steps, args.settle_time, args.radius)
         spread = f"{r['spread'][0] / 1e6:.2f}-{r['spread'][-1] / 1e6:.2f}"
-        print(f"{r['n']:>10d} {r['steps']:>9d} {r['wall']:>8.2f} {r['rate'] / 1e6:>18.2f} {spread:>11} {r['rebuilds']:>9d} "
-              f"{r['neighbours']:>14.1f} {r['dt']:>9.2e} {r['build']:>12.1f}", flush=True)
+        print(f"{r['n']:>10d} {r['steps']:>9d} {r['wall']:>8.2f} {r['rate'] / 1e6:>18.2f} {spread:>11} "
+              f"{r['rebuilds']:>9d} {r['neighbours']:>14.1f} {r['dt']:>9.2e} {r['build']:>12.1f}", flush=True)
     if not args.no_excavation:
         e = excavation(args.excavation_duration, args.excavation_set, args.arch)
         print(f"\nzx120_excavation.yaml {' '.join(args.excavation_set)}".rstrip())

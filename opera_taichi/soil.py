@@ -158,7 +158,7 @@ def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
 
 
 def calibrated_rolling_resistance(friction_angle: float) -> float:
-    """Rolling resistance of the default mapping: proportional to tan(phi), capped at ROLLING_MAX (0.3 at 33 deg) (see above)."""
+    """Rolling resistance of the default mapping: proportional to tan(phi), capped at ROLLING_MAX (0.3 at 33 deg)."""
     return min(ROLLING_MAX, ROLLING_PER_TAN_PHI * math.tan(friction_angle))
 
 
