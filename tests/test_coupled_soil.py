@@ -65,7 +65,7 @@ def test_blade_force_is_recorded_every_step_resists_motion_and_grows_with_depth(
         assert drafts[depth] > 0.0
     # Passive-type resistance grows with depth (FEE: with d^2 for cohesionless soil, 4x here). At 4 cm grains the
     # cuts are 1.5 and 3 grain diameters deep and the spoil pile ahead of the blade adds to both: measured ~2.0x
-    # (1.98 and 2.1 on two solver versions), the blade gap tracked in the validation issue. 1.5x still fails a
+    # (1.98 with solver 14; above 2 before), the blade gap tracked in the validation issue. 1.5x still fails a
     # force that grows only linearly with depth or not at all.
     assert drafts[0.24] > 1.5 * drafts[0.12], drafts
 
