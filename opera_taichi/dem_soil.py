@@ -150,7 +150,7 @@ class DemSoil:
         self.n_act = 0
         self._entries = 0
         self.rebuilds = 0       # neighbour-list rebuilds so far (diagnostics)
-        self.bed_packing: float | None = None  # solid fraction of freshly settled beds (None: loaded or none)
+        self.bed_packing: float | None = None  # solid fraction of the settled beds (None: no beds)
         self._tool_names: list[str] = []
         self._sdf_blocks: list[np.ndarray] = []
         self._tools_host = np.zeros((dem.MAX_TOOLS, dem.T_WIDTH))

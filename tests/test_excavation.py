@@ -64,6 +64,7 @@ def test_bucket_carries_at_least_30_percent_of_its_struck_volume(run):
 
     manifest = json.loads((run / "manifest.json").read_text())
     density = manifest["soil"]["bulk"]["density"]
+    assert 0.3 < manifest["soil"]["bed_packing"] < 0.65  # a settled random packing of spheres, as recorded
     struck = struck_volume(load_machine("zx120").collision_meshes["bucket_link"])
     cols = read_csv_columns(run / "soil_mass.csv")
     at_curl = cols["in_bucket_link_kg"][np.argmin(np.abs(cols["t"] - CURL_END))]
