@@ -418,6 +418,12 @@ class DemSoil:
             return
         prop = self._prop.to_numpy()
         scale = self.micro.bulk_density / (self.micro.solid_density * self.bed_packing)
+        # lighter grains (a bed packed denser than SOLID_FRACTION) shorten the contact time: t_c ~ sqrt(m)
+        limit = self.micro.dt_limit * math.sqrt(min(scale, 1.0))
+        if self.dt > limit * (1.0 + 1e-9):
+            raise UserError(f"sim.soil_dt: {self.dt:.3g} s is above the stability limit {limit:.3g} s of this bed: it "
+                            f"settled at a solid fraction of {self.bed_packing:.3f}, so matching its bulk density makes "
+                            f"the grains {1.0 / scale:.2f} x lighter than the limit of the soil mapping assumed")
         prop[:, 1] *= scale
         prop[:, 2] /= scale
         prop[:, 3] = prop[:, 1] ** 0.25
@@ -486,6 +492,17 @@ class DemSoil:
         row[dem.T_ROT:dem.T_ROT + 9] = np.eye(3).ravel()
         self._tools_dirty = True
         return i
+
+    def clear_above(self, z: float) -> None:
+        """From now on, remove every particle whose centre rises above height z and book its mass as out of the
+        domain (a spoil-clearing plane: soil-bin tests of the surcharge-free cutting force). Lowers the domain top
+        the kernels test; set after the beds have settled, which pour from above."""
+        if not (math.isfinite(z) and 0.0 < z <= self.domain_max[2]):
+            raise UserError(f"soil.clear_above: expected a height in m above the ground (> 0) and at most the "
+                            f"domain top {self.domain_max[2]:g}, got {z!r}")
+        prm = self._prm.to_numpy()
+        prm[dem.P_DMAX + 2] = z
+        self._prm.from_numpy(prm)
 
     @property
     def tool_names(self) -> list[str]:

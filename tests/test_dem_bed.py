@@ -116,3 +116,20 @@ def test_contact_springs_survive_neighbour_rebuilds():
     a, b = usual.particles()["positions"], every_step.particles()["positions"]
     order_a, order_b = np.lexsort(a.T), np.lexsort(b.T)  # particle order follows the cell order
     assert np.abs(a[order_a] - b[order_b]).max() < 1e-7
+
+
+def test_bed_lighter_than_the_time_step_assumed_is_a_time_step_error(tmp_path, monkeypatch):
+    # The masses of a settled bed are scaled to its bulk density. A bed packed denser than the mapping's solid
+    # fraction gets lighter grains than dt_limit was computed for; here the bulk density is cut to a third after the
+    # mapping, which scales the grains the same way, and a run at the mapping's limit must stop with exit 2.
+    import dataclasses
+
+    from opera_taichi.dem_soil import DemSoil
+    from opera_taichi.errors import UserError
+
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    micro = bulk_to_micro(resolve_soil("sand", {"radius": 0.025, "youngs_modulus": 2e6}), bed_depth=0.15)
+    light = dataclasses.replace(micro, bulk_density=micro.bulk_density / 3.0)
+    with pytest.raises(UserError, match=r"sim\.soil_dt: .* lighter"):
+        DemSoil(light, domain_min=DOMAIN[0], domain_max=DOMAIN[1], beds=[((-0.12, -0.12, -0.15), (0.12, 0.12, 0.0))],
+                settle_time=0.3)
