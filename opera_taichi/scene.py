@@ -354,9 +354,16 @@ class SoilConfig(_Model):
     bed_shift: Vec3M = Field((0.0, 0.0, 0.0), description="Moves every settled bed particle by [dx, dy, dz] at "
                              "t = 0, leaving the pits empty: [dx, 0, H] stands a settled block of height H on the "
                              "ground, released at once (column collapse, heaps, free-standing cuts).")
+    clear_above: Optional[_num("m", gt=0)] = Field(
+        None, description="Spoil-clearing plane: during the run a particle whose centre rises above this height "
+        "is removed and booked as out-of-domain mass (soil-bin tests of the cutting force without the spoil's "
+        "surcharge); null = only the domain top.")
 
     @model_validator(mode="after")
     def _bed_fits(self):
+        if self.clear_above is not None and self.clear_above > self.domain.max[2]:
+            raise _fail(f"a height <= the domain top {_fmt(self.domain.max[2])} m", self.clear_above,
+                        key="clear_above")
         for i, box in enumerate(self.bed):
             if box.max[2] > 0:
                 raise _fail("a pit top z <= 0 (0 = flush with the ground)", list(box.max), key=f"bed.{i}.max")

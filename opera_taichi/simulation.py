@@ -213,6 +213,8 @@ class Simulation:
             if np.any(shift != 0.0):  # a settled block released above the ground (the pits stay, empty)
                 parts = self.state.soil.particles()
                 self.state.soil.set_particles(parts["positions"] + shift, radii=parts["radii"])
+            if soil.clear_above is not None:
+                self.state.soil.clear_above(float(soil.clear_above))
             names = []
             if model.machine is not None:
                 for link in model.machine.soil_links:

@@ -50,6 +50,8 @@ CASES = [
     ("mpm", "soil: {model: mpm}\n", [], ["soil.model", "not available yet"]),
     ("bed_above_ground", "soil: {bed: [{min: [3, -1, -1], max: [5, 1, 0.5]}]}\n", [], ["soil.bed.0.max", "z <= 0"]),
     ("bed_outside_domain", "soil: {bed: [{min: [3, -1, -1], max: [50, 1, 0]}]}\n", [], ["soil.bed.0", "domain"]),
+    ("clear_above_domain", "soil: {clear_above: 20}\n", [], ["soil.clear_above", "domain top"]),
+    ("clear_above_negative", "soil: {clear_above: -0.1}\n", [], ["soil.clear_above"]),
     ("domain_inverted", "soil: {domain: {min: [0, 0, 0], max: [1, -1, 1]}}\n", [], ["soil.domain.max", "max > min"]),
     ("overrides_non_number", "soil: {overrides: {density: heavy}}\n", [], ["soil.overrides.density", "'heavy'"]),
     ("empty_file", "", [], ["empty file"]),
