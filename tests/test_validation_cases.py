@@ -1,9 +1,9 @@
 """Validation runner without running the DEM: parameters, scene building, metric extraction, CLI errors, report."""
-import json
 import math
 
 import numpy as np
 import pytest
+import trimesh
 
 from opera_taichi.cli import main
 from opera_taichi.errors import UserError
@@ -39,7 +39,7 @@ def test_shipped_scenes_are_the_default_case():
         built = load_scene(cases.scene_file(case), sets).model_dump(mode="json")
         assert plain["soil"]["preset"] == built["soil"]["preset"]
         for part, key in (("soil", "bed"), ("soil", "domain"), ("soil", "bed_shift"), ("soil", "overrides"),
-                          ("sim", "duration"), ("tools", None)):
+                          ("soil", "clear_above"), ("sim", "duration"), ("tools", None)):
             a = plain[part] if key is None else plain[part][key]
             b = built[part] if key is None else built[part][key]
             a, b = _numbers(a), _numbers(b)
@@ -48,21 +48,29 @@ def test_shipped_scenes_are_the_default_case():
                                [x for x in b if not isinstance(x, str) and x is not None], atol=1e-5), (case, key)
 
 
-def test_blade_geometry_puts_the_cutting_edge_at_depth_and_rake():
+def test_blade_geometry_puts_the_cutting_edge_at_depth_and_rake(tmp_path):
     p = cases.parse_params("blade_cut", ["depth=0.2", "rake_deg=60", "width=1.0"])
-    sets, geo = cases.build_overrides("blade_cut", p, "coarse")
-    tool = load_scene(cases.scene_file("blade_cut"), sets).tools[0]
+    sets, geo = cases.build_overrides("blade_cut", p, "coarse", work_dir=tmp_path)
+    scene = load_scene(cases.scene_file("blade_cut"), sets)
+    tool = scene.tools[0]
     from opera_taichi.validation.cases import _rot_y
 
     rot = _rot_y(tool.rpy[1])
-    t, w, length = tool.box
-    corners = np.array([[sx * t / 2, sy * w / 2, sz * length / 2] for sx in (-1, 1) for sy in (-1, 1)
-                        for sz in (-1, 1)]) @ rot.T + np.asarray(tool.start)
-    assert corners[:, 2].min() == pytest.approx(-0.2)      # cuts at depth d
-    assert corners[:, 0].max() < 0.0                       # starts clear of the soil (pit starts at x = 0)
+    mesh = trimesh.load(tool.mesh, force="mesh")
+    assert mesh.is_watertight and mesh.volume > 0
+    local = mesh.vertices
+    world = local @ rot.T + np.asarray(tool.start)
+    assert world[:, 2].min() == pytest.approx(-0.2)        # cuts at depth d
+    assert world[:, 0].max() < 0.0                         # starts clear of the soil (pit starts at x = 0)
     face_normal = rot @ np.array([1.0, 0.0, 0.0])          # the face that meets the soil
     assert math.degrees(math.atan2(face_normal[0], face_normal[2])) == pytest.approx(60.0)  # 60 deg from horizontal
-    assert w == pytest.approx(1.0) and tool.velocity[0] == pytest.approx(0.1)
+    lowest = np.isclose(world[:, 2], world[:, 2].min())
+    assert np.allclose(local[lowest, 0], local[:, 0].max())  # the lowest points are the edge, on the soil face
+    # every other bottom point (the bevel's back) clears the cut floor behind the edge
+    others = world[~lowest & (local[:, 2] < 0)]
+    assert np.all(others[:, 2] > -0.2 + 0.01)
+    assert mesh.extents[1] == pytest.approx(1.0) and tool.velocity[0] == pytest.approx(0.1)
+    assert scene.soil.clear_above == pytest.approx(cases.BLADE_CLEAR_ABOVE * geo["radius"])
 
 
 def test_vertical_cut_default_height_is_below_culmann():

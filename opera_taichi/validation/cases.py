@@ -3,17 +3,20 @@ overrides), runs it with run_scene into DIR/run/, reads the metric from the run 
 DIR/metrics.json.
 
 Geometry (all quasi-static set-ups; x forward, z up, ground at z = 0):
-- blade_cut: a thin flat blade of width w, rake alpha (rpy pitch = alpha - pi/2), lowest edge at z = -d,
-  enters a pit from its back wall (x = 0) at constant speed toward +x; the pit is wider than the blade by d
-  on each side so the edges are free (3-D blade, w >= 5 d). Draft = -fx, vertical on the soil = -fz of the
-  soil's force on the blade, averaged over blade travel d..3d, per metre of blade width.
+- blade_cut: a flat blade (plate 2R thick, its lower edge sharpened: blade_mesh) of width w, rake alpha (rpy
+  pitch = alpha - pi/2), cutting edge at z = -d, enters a pit from its back wall (x = 0) at constant speed
+  toward +x; the pit is wider than the blade by d on each side so the edges are free (3-D blade, w >= 5 d).
+  Spoil rising above the original surface is cleared (soil.clear_above = R/2): the FEE oracle has no
+  surcharge (q = 0), and a pile growing ahead of the blade would add its q d N_q term. Draft = -fx, vertical
+  on the soil = -fz of the soil's force on the blade, averaged over blade travel d..3d, per metre of width.
 - passive_wall: a smooth (tool friction 0) box wall spanning the pit's width and full depth H, pushed 0.2 H
   into the bed; peak of the smoothed thrust per metre of pit width.
 - column_collapse, repose, vertical_cut: the DEM fills pits only, so the bed is settled in a pit away from
   the test area and moved onto the ground at t = 0 (soil.bed_shift): a settled block released at once.
   column_collapse and vertical_cut are quasi-2-D slices between the domain's y walls (8 particle diameters
-  apart) with the domain's x- wall as the back wall; repose lifts four box walls around a square column
-  (0.1 m/s) and measures the heap's flanks.
+  apart) with the domain's x- wall as the back wall. repose drops a settled square column into a conical
+  hopper whose outlet starts 3 R above the ground and lifts at 0.05 m/s: the outlet rides on the apex of the
+  heap it pours (soil.md: pour or lift a cylinder); the metric is the mean of the heap's four flank fits.
 """
 from __future__ import annotations
 
@@ -21,14 +24,15 @@ import csv
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import trimesh
 
 from ..errors import UserError
-from ..paths import scenes_dir
+from ..paths import cache_dir, scenes_dir
 from . import references as ref
 
 RESOLUTIONS = ("coarse", "default", "fine")
@@ -79,11 +83,15 @@ ACROSS = {
     "repose": dict(coarse=8, default=16, fine=24),          # across the lifted column
     "vertical_cut": dict(coarse=8, default=16, fine=24),    # across the Culmann height
 }
-REPOSE_COLUMN = 0.4      # m, side and height of the lifted column
-REPOSE_LIFT_SPEED = 0.1  # m/s
+REPOSE_COLUMN = 0.4      # m, side and height of the settled column poured through the hopper
+HOPPER_OUTLET = 10.0     # x R: outlet radius (10 particle diameters across: no arching)
+HOPPER_WALL = math.radians(60.0)  # hopper walls from the horizontal (steeper than any repose angle: they empty)
+HOPPER_LIFT_SPEED = 0.05  # m/s
 WALL_SPEED = 0.1         # m/s, passive wall (inertial pressure rho v^2 ~ 17 Pa: negligible)
 WALL_TRAVEL = 0.2        # x H
 BLADE_TRAVEL = 3.0       # x d; forces averaged over travel d .. 3d
+BLADE_BEVEL = 3.0        # the blade's back face ends this many thicknesses above its edge (18 deg edge)
+BLADE_CLEAR_ABOVE = 0.5  # x R: spoil rising this far above the original surface is cleared (FEE without surcharge)
 CUT_DURATION = 5.0       # s a face must stand
 CUT_MOVED_LIMIT = 0.05   # a face has failed when more than 5% of the block's mass left it
 
@@ -157,8 +165,44 @@ def _settle_time(depth: float) -> float:
     return max(1.0, 5.0 * math.sqrt(2.0 * 1.2 * depth / 9.81))
 
 
-def build_overrides(case: str, p: dict, resolution: str) -> tuple[list[str], dict]:
-    """The `--set` overrides for this case and the geometry the metric needs."""
+def blade_mesh(thickness: float, width: float, length: float) -> trimesh.Trimesh:
+    """Flat blade in its own frame (x: face normal, toward the soil; y: width; z: along the blade, centred), its
+    cutting edge sharpened: the back face ends BLADE_BEVEL thicknesses above the edge, so the bevel behind the
+    edge clears the cut floor at any rake >= 20 deg (a square-ended plate would ride on, or plough into, the
+    soil below the edge with its end face, which no cutting test has)."""
+    t, w, lz = thickness / 2, width / 2, length / 2
+    profile = [(t, -lz), (t, lz), (-t, lz), (-t, -lz + BLADE_BEVEL * thickness)]  # (x, z), the edge first
+    points = [(x, y, z) for x, z in profile for y in (-w, w)]
+    return trimesh.convex.convex_hull(np.array(points))
+
+
+def hopper_mesh(outlet_radius: float, height: float, wall: float) -> trimesh.Trimesh:
+    """Conical hopper (a funnel) in its own frame: outlet of radius outlet_radius at z = 0, walls HOPPER_WALL from
+    the horizontal up to z = height, `wall` thick. Lifted slowly, its outlet rides on the apex of the heap it feeds:
+    a poured heap, a cone with a sharp apex (a lifted cylinder collapses and leaves a rounded, flatter top)."""
+    run = height / math.tan(HOPPER_WALL)
+    thick = wall / math.sin(HOPPER_WALL)  # horizontal width of a wall `wall` thick
+    profile = [(outlet_radius + thick, 0.0), (outlet_radius + run + thick, height), (outlet_radius + run, height),
+               (outlet_radius, 0.0)]  # (r, z), in the order that gives outward normals
+    return trimesh.creation.revolve(np.array(profile + profile[:1]), sections=64)  # closed profile: a solid
+
+
+def _tool_file(mesh, name: str, work_dir) -> str:
+    """Write a case's tool mesh (named by its content) to work_dir, default the cache; returns its path."""
+    import hashlib
+
+    digest = hashlib.sha256(np.round(mesh.vertices, 9).tobytes() + mesh.faces.tobytes()).hexdigest()[:12]
+    path = Path(work_dir if work_dir is not None else cache_dir() / "validation") / f"{name}_{digest}.obj"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        mesh.export(path)
+    return str(path.resolve())
+
+
+def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | None = None
+                    ) -> tuple[list[str], dict]:
+    """The `--set` overrides for this case and the geometry the metric needs. Files a case needs (the blade
+    mesh) are written to work_dir (default: the cache)."""
     if resolution not in RESOLUTIONS:
         raise UserError(f"--resolution: expected one of {', '.join(RESOLUTIONS)}, got {resolution!r}")
     n = ACROSS[case][resolution]
@@ -174,10 +218,11 @@ def build_overrides(case: str, p: dict, resolution: str) -> tuple[list[str], dic
         half_y = w / 2 + d + 2 * R
         lx = travel + 3.5 * d
         rot = _rot_y(alpha - math.pi / 2)
-        corners = np.array([[sx * t / 2, sy * w / 2, sz * length / 2] for sx in (-1, 1) for sy in (-1, 1)
-                            for sz in (-1, 1)]) @ rot.T
+        mesh = blade_mesh(t, w, length)
+        corners = mesh.vertices @ rot.T
         centre = np.array([-RELEASE_GAP * R - corners[:, 0].max(), 0.0, -d - corners[:, 2].min()])
         top = centre[2] + corners[:, 2].max()
+        mesh_file = _tool_file(mesh, "blade", work_dir)
         x_back = centre[0] + corners[:, 0].min() - 0.1
         soil = {"soil.preset": p["preset"],
                 "soil.overrides": {"radius": R, "friction_angle_deg": p["friction_deg"], "density": p["density"],
@@ -185,7 +230,8 @@ def build_overrides(case: str, p: dict, resolution: str) -> tuple[list[str], dic
                 "soil.bed": [_box((0, -half_y, floor), (lx, half_y, 0))],
                 "soil.domain": _box((x_back, -half_y, floor - 0.05), (lx + 0.1, half_y, top + 1.0)),
                 "soil.settle_time": _settle_time(-floor),
-                "tools": [{"name": "blade", "box": [t, w, length], "start": centre.tolist(),
+                "soil.clear_above": BLADE_CLEAR_ABOVE * R,
+                "tools": [{"name": "blade", "mesh": mesh_file, "start": centre.tolist(),
                            "rpy": [0.0, alpha - math.pi / 2, 0.0], "velocity": [p["speed"], 0.0, 0.0]}],
                 "sim.duration": travel / p["speed"]}
         geo = dict(radius=R, travel=travel, window=(d, travel))
@@ -224,22 +270,23 @@ def build_overrides(case: str, p: dict, resolution: str) -> tuple[list[str], dic
     elif case == "repose":
         D = REPOSE_COLUMN
         R = D / (2 * n)
-        t = max(2.0 * R, 0.02)
         extent = 2.0 * D
         xp = extent + 0.05
-        gap = RELEASE_GAP * R
-        wall_h = D + 4 * R
-        tools = []
-        for name, sx, sy in (("wall_xp", 1, 0), ("wall_xn", -1, 0), ("wall_yp", 0, 1), ("wall_yn", 0, -1)):
-            off = D / 2 + gap + t / 2
-            size = [t, D + 2 * (gap + t), wall_h] if sx else [D + 2 * (gap + t), t, wall_h]
-            tools.append({"name": name, "box": size, "start": [sx * off, sy * off, wall_h / 2],
-                          "velocity": [0.0, 0.0, REPOSE_LIFT_SPEED]})
+        outlet = HOPPER_OUTLET * R
+        z0 = 3.0 * R  # outlet height at t = 0
+        # the settled column is dropped into the hopper where the cone is wide enough for its corners
+        z_block = max((D / math.sqrt(2.0) + 2.0 * R - outlet) * math.tan(HOPPER_WALL), 2.0 * R)
+        mesh = hopper_mesh(outlet, z_block + D + 4.0 * R, max(2.0 * R, 0.02))
+        mesh_file = _tool_file(mesh, "hopper", work_dir)
+        # heap height: a cone of the column's volume at 33 deg; the outlet rides on its apex until it is empty
+        heap_h = (3.0 * D ** 3 * math.tan(math.radians(33.0)) ** 2 / math.pi) ** (1.0 / 3.0)
         soil = {"soil.preset": p["preset"], "soil.overrides": {"radius": R},
                 "soil.bed": [_box((xp, -D / 2, -D), (xp + D, D / 2, 0))],
-                "soil.domain": _box((-extent, -extent, -D - 0.05), (xp + D + 0.05, extent, D + 1.0)),
-                "soil.settle_time": _settle_time(D), "soil.bed_shift": [-xp - D / 2, 0.0, D],
-                "tools": tools, "sim.duration": wall_h / REPOSE_LIFT_SPEED + 1.0}
+                "soil.domain": _box((-extent, -extent, -D - 0.05), (xp + D + 0.05, extent, z0 + z_block + D + 1.0)),
+                "soil.settle_time": _settle_time(D), "soil.bed_shift": [-xp - D / 2, 0.0, z0 + z_block + D],
+                "tools": [{"name": "hopper", "mesh": mesh_file, "start": [0.0, 0.0, z0],
+                           "velocity": [0.0, 0.0, HOPPER_LIFT_SPEED]}],
+                "sim.duration": 1.4 * heap_h / HOPPER_LIFT_SPEED + 2.0}
         geo = dict(radius=R, column=D)
     elif case == "vertical_cut":
         H = p["height"]
@@ -400,8 +447,8 @@ def run_case(case: str, params=None, resolution: str = "default", out_dir: str |
     from ..simulation import run_scene
 
     p = parse_params(case, params)
-    sets, geo = build_overrides(case, p, resolution)
     out = Path(out_dir) if out_dir is not None else Path("runs") / f"validate-{case}-{time.strftime('%Y%m%d-%H%M%S')}"
+    sets, geo = build_overrides(case, p, resolution, work_dir=out)
     scene = load_scene(scene_file(case), sets)
     t0 = time.perf_counter()
     result = run_scene(scene, out_dir=out / "run", arch=arch, quiet=quiet)

@@ -82,18 +82,23 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
 
 1. **Bed state.** Beds are poured with the soil's own friction and rolling resistance (loose, as deposited)
    and the particle masses are then scaled so the settled bed has the given bulk `density` (`DemSoil.bed_packing`
-   reports the solid fraction reached). Nothing to tune; a dense (frictionless) pour made every bed 4-10 x too
-   strong against walls and blades.
+   reports the solid fraction reached). A dense (frictionless) pour made every bed 4-10 x too strong against walls
+   and blades. The friction pour is loose (solid fraction 0.40-0.50) and contractive: pushed by the passive wall it
+   compacts instead of failing at a peak, so its thrust climbs through Rankine's value at about 8% of H of wall
+   travel and keeps rising, nearly the same for particle friction 26 and 35 deg. Controlling the bed's density
+   (a target solid fraction for the pour) is the open calibration step for the wall and blade gates.
 2. **Rolling resistance** `rolling_resistance` (default min(0.3, 0.3 tan(phi) / tan(33 deg))) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
    `opera-taichi validate-physics repose --param preset=NAME`, changing `soil.rolling_resistance` through a
    preset override, until the run-out sits in the Lube/Lajeunesse band and the heap matches the measured repose
-   angle. Above ~0.35 poured beds become very loose (solid fraction below 0.4) and weak; below ~0.15 heaps
-   stay near 20 deg.
+   angle. The heap is poured through a hopper whose outlet rides on its apex (a lifted column collapses and
+   leaves a rounded top 4-6 deg flatter than its flanks). Above ~0.35 poured beds become very loose (solid
+   fraction below 0.4) and weak; below ~0.15 heaps stay near 20 deg.
 3. **Friction angle** `friction_angle_deg` (particle friction tan(phi)): check with the passive wall and the blade,
    `validate-physics passive_wall --param height=0.3` and `validate-physics blade_cut --param depth=0.3`, which
-   compare with Rankine and the earthmoving equation at the same phi.
+   compare with Rankine and the earthmoving equation at the same phi. The blade has a sharpened edge and the
+   spoil rising above the surface is cleared (`soil.clear_above`), so the oracle is the FEE without surcharge.
 4. **Cohesion** `cohesion` (Pa; Rumpf's bond force, see soil.py): check with the vertical cut at 0.6 and 2 x the
    Culmann height, `validate-physics vertical_cut --param preset=NAME --param height=H`; raise or lower the
    cohesion until the face stands below and fails above the critical height.
