@@ -87,7 +87,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    compacts instead of failing at a peak, so its thrust climbs through Rankine's value at about 8% of H of wall
    travel and keeps rising, nearly the same for particle friction 26 and 35 deg. Controlling the bed's density
    (a target solid fraction for the pour) is the open calibration step for the wall and blade gates.
-2. **Rolling resistance** `rolling_resistance` (default min(0.3, 0.3 tan(phi) / tan(33 deg))) sets how the soil
+2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.5) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
    `opera-taichi validate-physics repose --param preset=NAME`, changing `soil.rolling_resistance` through a
