@@ -21,6 +21,7 @@ Geometry (all quasi-static set-ups; x forward, z up, ground at z = 0):
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 import time
@@ -80,7 +81,7 @@ ACROSS = {
     "blade_cut": dict(coarse=3, default=6, fine=10),        # across the cutting depth
     "passive_wall": dict(coarse=5, default=10, fine=15),    # across the wall height
     "column_collapse": dict(coarse=8, default=16, fine=24),  # across L0
-    "repose": dict(coarse=8, default=16, fine=24),          # across the lifted column
+    "repose": dict(coarse=8, default=16, fine=24),          # across the poured column
     "vertical_cut": dict(coarse=8, default=16, fine=24),    # across the Culmann height
 }
 REPOSE_COLUMN = 0.4      # m, side and height of the settled column poured through the hopper
@@ -189,8 +190,6 @@ def hopper_mesh(outlet_radius: float, height: float, wall: float) -> trimesh.Tri
 
 def _tool_file(mesh, name: str, work_dir) -> str:
     """Write a case's tool mesh (named by its content) to work_dir, default the cache; returns its path."""
-    import hashlib
-
     digest = hashlib.sha256(np.round(mesh.vertices, 9).tobytes() + mesh.faces.tobytes()).hexdigest()[:12]
     path = Path(work_dir if work_dir is not None else cache_dir() / "validation") / f"{name}_{digest}.obj"
     if not path.exists():
@@ -201,8 +200,8 @@ def _tool_file(mesh, name: str, work_dir) -> str:
 
 def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | None = None
                     ) -> tuple[list[str], dict]:
-    """The `--set` overrides for this case and the geometry the metric needs. Files a case needs (the blade
-    mesh) are written to work_dir (default: the cache)."""
+    """The `--set` overrides for this case and the geometry the metric needs. Tool meshes a case needs (blade,
+    hopper) are written to work_dir (default: the cache)."""
     if resolution not in RESOLUTIONS:
         raise UserError(f"--resolution: expected one of {', '.join(RESOLUTIONS)}, got {resolution!r}")
     n = ACROSS[case][resolution]
