@@ -24,7 +24,7 @@ WALL_STIFFNESS_RATIO = 2.0   # ground, walls and tools: k = 2 k_n, the same surf
 # Rolling resistance (EPSD) for spheres with mu = tan(phi): mu_r = ROLLING_MAX min(1, tan(phi) / tan(33 deg))^1.5,
 # 0.3 for sand at 33 deg and above. Calibrated on heaps poured through a hopper at the default validation resolution
 # (`validate-physics repose`, 16 diameters across the column): sand (33 deg) mu_r 0.3 -> 32.6 deg; glass beads
-# (22 deg, target 22) mu_r 0.187 -> 24.7 deg, 0.12 -> 20.6 deg, so the exponent 1.5 (mu_r 0.147) for them. The cap
+# (22 deg, target 22) mu_r 0.187 -> 24.7 deg, 0.12 -> 20.6 deg, hence the exponent 1.5 (mu_r 0.147 -> 23.2). The cap
 # 0.3 comes from the coarse column collapse and passive wall runs (beds poured with friction, masses matched to the
 # bulk density): above ~0.33 the friction pour gets very loose (solid fraction < 0.41) and weak (wall 0.92 x at 0.33,
 # 0.61 x at 0.4; run-out at a = 1 1.07 at 0.35). With a dense, frictionless pour the same mu_r made beds 4-10 x too
