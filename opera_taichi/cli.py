@@ -1,17 +1,20 @@
 """Command line: `opera-taichi run|validate SCENE.yaml` (same as `python cli.py ...` in a checkout).
 
-Exit codes: 0 done, 1 a bug (traceback), 2 bad input (one line), 3 the simulation diverged, 130 interrupted.
+Exit codes: 0 done, 1 a bug (traceback), 2 bad input (one line), 3 the simulation diverged, 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM); both keep what the run recorded.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 import traceback
 from pathlib import Path
 
 from . import __version__
-from .errors import DivergenceError, UserError
+from .errors import DivergenceError, Terminated, UserError
 from .scene import load_scene, resolve_out_dir
 
 
@@ -125,6 +128,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_usage(sys.stderr)
         print("opera-taichi: error: a command is required (run, validate or validate-physics)", file=sys.stderr)
         return 2
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.handler(args)
     except UserError as exc:
@@ -133,9 +139,19 @@ def main(argv: list[str] | None = None) -> int:
     except DivergenceError as exc:
         print(f"diverged: {_one_line(exc)}", file=sys.stderr)
         return DivergenceError.exit_code
+    except Terminated:
+        print("terminated (SIGTERM)", file=sys.stderr)
+        return Terminated.exit_code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception:  # anything else is a bug: show where
         traceback.print_exc()
         return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum, frame):
+    raise Terminated("terminated by SIGTERM")

@@ -11,3 +11,9 @@ class DivergenceError(Exception):
     """The simulation left its physical bounds; what was recorded so far is kept."""
 
     exit_code = 3
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a job manager, `timeout`, `kill`): handled like Ctrl-C, so the run folder is closed and kept."""
+
+    exit_code = 143  # 128 + SIGTERM

@@ -423,8 +423,8 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
     except DivergenceError as exc:
         status, message = "diverged", str(exc)
         raise
-    except KeyboardInterrupt:
-        status, message = "interrupted", "interrupted by the user"
+    except KeyboardInterrupt as exc:
+        status, message = "interrupted", str(exc) or "interrupted by the user"
         raise
     except UserError as exc:  # e.g. a soil dt problem found while running
         status, message = "bad input", str(exc)

@@ -86,6 +86,26 @@ def test_interrupt_exits_130_with_one_line(scene_file, fake_simulation, capsys):
     assert capsys.readouterr().err == "interrupted\n"
 
 
+def test_sigterm_exits_143_with_one_line_and_restores_the_handler(scene_file, monkeypatch, capsys):
+    import os
+    import signal
+
+    before = signal.getsignal(signal.SIGTERM)
+    seen = {}
+
+    def terminated_run(scene, out_dir=None, arch=None, quiet=False):
+        seen["handler"] = signal.getsignal(signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGTERM)  # as a job manager or `timeout` would
+        raise AssertionError("SIGTERM did not stop the run")
+
+    monkeypatch.setattr(cli, "_simulation_module",
+                        lambda required: types.SimpleNamespace(run_scene=terminated_run))
+    assert cli.main(["run", str(scene_file), "--quiet"]) == 143
+    assert capsys.readouterr().err == "terminated (SIGTERM)\n"
+    assert seen["handler"] is not before            # the run was covered by the CLI's handler
+    assert signal.getsignal(signal.SIGTERM) is before  # and the caller's handler is back
+
+
 def test_a_bug_exits_1_with_a_traceback(scene_file, fake_simulation, capsys):
     fake_simulation["raise"] = ZeroDivisionError("oops")
     assert cli.main(["run", str(scene_file)]) == 1
