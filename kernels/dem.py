@@ -343,6 +343,32 @@ def _face(fid, pit, x, r, prm: ti.template()):
 
 
 @ti.func
+def _face_plane_distance(fid, pit, x, prm: ti.template()):
+    """Distance from x to the plane of static face `fid`: a lower bound of the distance to the face itself, so a
+    particle farther than its radius cannot touch it, nor be buried in it (HUGE for a ground face under a pit)."""
+    dist = ti.f64(HUGE)
+    if fid < 4:
+        axis = fid // 2
+        dist = x[axis] - prm[P_DMIN + axis]
+        if fid % 2 == 1:
+            dist = prm[P_DMAX + axis] - x[axis]
+    elif fid == FACE_GROUND:
+        if pit < 0:
+            dist = x[2]
+    else:
+        f = (fid - 5) % FACES_PER_PIT
+        b = P_PITS + 6 * pit
+        if f == 0:
+            dist = x[2] - prm[b + 2]
+        else:
+            axis = (f - 1) // 2
+            dist = ti.abs(x[axis] - prm[b + axis])
+            if (f - 1) % 2 == 1:
+                dist = ti.abs(x[axis] - prm[b + 3 + axis])
+    return dist
+
+
+@ti.func
 def _find_slot(ids, fid):
     """Slot already holding face fid, else the first free slot, else -1 (contact without history)."""
     slot = -1
@@ -456,7 +482,11 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                         n_faces += FACES_PER_PIT
                     for q in range(n_faces):  # domain walls, ground, then the faces of this particle's pit
                         fid = q if q < 5 else q + FACES_PER_PIT * pit
-                        overlap, n, out = _face(fid, pit, x, r, prm)
+                        overlap = ti.f64(-1.0)
+                        n = vec3(0.0)
+                        out = False
+                        if _face_plane_distance(fid, pit, x, prm) < r:  # cheap test first: most faces are far
+                            overlap, n, out = _face(fid, pit, x, r, prm)
                         if out:
                             buried = True
                         if overlap > 0.0 and not out:
