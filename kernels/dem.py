@@ -16,7 +16,9 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
   x_ref[n]      vec4 f64   position at the last neighbour build (Verlet skin criterion) and its clearance to the
                 static faces: a particle moves at most skin/2 before the next build, so one whose clearance then
                 exceeded r + skin/2 cannot touch a face and skips the face search
-  surf_id[n, 4] i32        static face held by each wall-contact slot (-1 free)
+  surf_id[n, 5] i32        columns 0-3: static face held by each wall-contact slot (-1 free); column 4 (TOOL_BITS):
+                bit t set while tool t's slot may hold a spring, so a particle away from every tool does not
+                read its tool slots each substep (a cache line per particle)
   surf_h[n, 8]  vec6 f32   history: slots 0-3 static faces, 4-7 tools; (tangential spring, rolling spring)
   nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  half neighbour list in CSR form (each pair once, held by one of
                 the two, i: entries nbr_off[i]..nbr_off[i+1]) and each pair's springs (seen from i)
@@ -45,6 +47,8 @@ MAX_TOOLS = 4
 MAX_PITS = 16
 WALL_SLOTS = 4
 SURF_SLOTS = WALL_SLOTS + MAX_TOOLS
+TOOL_BITS = WALL_SLOTS        # surf_id column of the tool-spring bits
+SURF_ID_WIDTH = WALL_SLOTS + 1
 BLOCK = 64  # particles per reduction block: sums per block, then added in block order
 MORTON_BITS = 21
 CELL_LIMIT = (1 << MORTON_BITS) - 2
@@ -519,6 +523,8 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                             ids[s] = -1
                         surf_id[i, s] = ids[s]
                 # kinematic tools: SDF in the link frame, the reaction summed per tool
+                bits_in = surf_id[i, TOOL_BITS]
+                tool_bits = bits_in
                 for t in range(MAX_TOOLS):
                     if tools[t, T_ON] > 0.0:
                         rot = _tool_rotation(tools, t)
@@ -544,16 +550,18 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                                 force += f_c
                                 torque += lever.cross(f_t) + m_r
                                 surf_h[i, WALL_SLOTS + t] = h_new
+                                tool_bits |= 1 << t
                                 arm = x_c - origin
                                 on_tool = -f_c
                                 moment = arm.cross(on_tool)
                                 for c in ti.static(range(3)):
                                     tool_sum[t, c] += on_tool[c]
                                     tool_sum[t, 3 + c] += moment[c]
-                        if not hit:
-                            h_old = surf_h[i, WALL_SLOTS + t]
-                            if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
-                                surf_h[i, WALL_SLOTS + t] = vec6f(0.0)
+                        if not hit and ((tool_bits >> t) & 1) == 1:
+                            surf_h[i, WALL_SLOTS + t] = vec6f(0.0)
+                            tool_bits &= ~(1 << t)
+                if tool_bits != bits_in:
+                    surf_id[i, TOOL_BITS] = tool_bits
                 if x[2] > prm[P_DMAX + 2]:
                     buried = True
                 if buried:
@@ -705,7 +713,7 @@ def gather_particles(n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP
         prop_out[k] = prop[o]
         flags_out[k] = flags[o]
         cell_out[k] = cell[o]
-        for s in ti.static(range(WALL_SLOTS)):
+        for s in ti.static(range(SURF_ID_WIDTH)):
             surf_id_out[k, s] = surf_id[o, s]
         for s in ti.static(range(SURF_SLOTS)):
             surf_h_out[k, s] = surf_h[o, s]
@@ -929,5 +937,6 @@ def reset_contacts(n: ti.i32, nbr_off: I32_1, surf_id: I32_2, surf_h: HIST):
     for i in range(n):
         for s in ti.static(range(WALL_SLOTS)):
             surf_id[i, s] = -1
+        surf_id[i, TOOL_BITS] = 0
         for s in ti.static(range(SURF_SLOTS)):
             surf_h[i, s] = vec6f(0.0)

@@ -210,7 +210,7 @@ class DemSoil:
         self._prop, self._prop2 = (nd(dem.vec4, cap) for _ in range(2))
         self._flags, self._flags2 = (nd(ti.i32, cap) for _ in range(2))
         self._cell, self._cell2 = (nd(ti.i64, cap) for _ in range(2))
-        self._surf_id, self._surf_id2 = (nd(ti.i32, (cap, dem.WALL_SLOTS)) for _ in range(2))
+        self._surf_id, self._surf_id2 = (nd(ti.i32, (cap, dem.SURF_ID_WIDTH)) for _ in range(2))
         self._surf_h, self._surf_h2 = (nd(dem.vec6f, (cap, dem.SURF_SLOTS)) for _ in range(2))
         self._x_ref = nd(dem.vec4, cap)
         self._own = nd(dem.vec3, (cap, 2))
@@ -459,6 +459,8 @@ class DemSoil:
         self._allocate(n)
         if len(arrays["nbr_j"]) > self._nbr_j.shape[0]:
             self._allocate_neighbors(len(arrays["nbr_j"]))
+        if arrays["surf_id"].shape[1] < dem.SURF_ID_WIDTH:  # saved before the tool-spring bits: no tool touched it
+            arrays["surf_id"] = np.pad(arrays["surf_id"], ((0, 0), (0, dem.SURF_ID_WIDTH - arrays["surf_id"].shape[1])))
         for name, value in arrays.items():
             target = getattr(self, "_" + name)
             full = target.to_numpy()

@@ -5,12 +5,17 @@ DIR/metrics.json.
 Geometry (all quasi-static set-ups; x forward, z up, ground at z = 0):
 - blade_cut: a flat blade (plate 2R thick, its lower edge sharpened: blade_mesh) of width w, rake alpha (rpy
   pitch = alpha - pi/2), cutting edge at z = -d, enters a pit from its back wall (x = 0) at constant speed
-  toward +x; the pit is wider than the blade by d on each side so the edges are free (3-D blade, w >= 5 d).
+  toward +x; the pit is wider than the blade by d on each side so the edges are free (3-D blade, w >= 5 d),
+  and its floor is d below the edge (SOIL_BELOW; at d/3, the coarse draft was 8% higher).
   Spoil rising above the original surface is cleared (soil.clear_above = R/2): the FEE oracle has no
   surcharge (q = 0), and a pile growing ahead of the blade would add its q d N_q term. Draft = -fx, vertical
   on the soil = -fz of the soil's force on the blade, averaged over blade travel d..3d, per metre of width.
-- passive_wall: a smooth (tool friction 0) box wall spanning the pit's width and full depth H, pushed 0.2 H
-  into the bed; peak of the smoothed thrust per metre of pit width.
+- passive_wall: a smooth (tool friction 0) box wall spanning the pit's width, reaching depth H, pushed 0.2 H
+  into a bed 2 H deep (SOIL_BELOW: the soil goes on below the wall's base, as in Rankine's half-space); peak of the
+  smoothed thrust per metre of pit width. With the pit floor at the wall's base, the rough floor carried the
+  wedge's heel and the thrust kept hardening to 1.5 x Rankine (default resolution); with a smooth floor the
+  whole loose bed slid and compressed against the far pit wall (no failure wedge). With soil below, a wedge
+  about 1.6 H long forms, as Rankine's 1.9 H, and the thrust peaks near 0.15-0.18 H.
 - column_collapse, repose, vertical_cut: the DEM fills pits only, so the bed is settled in a pit away from
   the test area and moved onto the ground at t = 0 (soil.bed_shift): a settled block released at once.
   column_collapse and vertical_cut are quasi-2-D slices between the domain's y walls (8 particle diameters
@@ -90,6 +95,8 @@ HOPPER_WALL = math.radians(60.0)  # hopper walls from the horizontal (steeper th
 HOPPER_LIFT_SPEED = 0.05  # m/s
 WALL_SPEED = 0.1         # m/s, passive wall (inertial pressure rho v^2 ~ 17 Pa: negligible)
 WALL_TRAVEL = 0.2        # x H
+SOIL_BELOW = 1.0         # x d (blade) or H (wall): soil below the cutting edge or the wall's base. The oracles
+                         # assume a half-space there; a rough pit floor close under the failure zone carries load
 BLADE_TRAVEL = 3.0       # x d; forces averaged over travel d .. 3d
 BLADE_BEVEL = 3.0        # the blade's back face ends this many thicknesses above its edge (18 deg edge)
 BLADE_CLEAR_ABOVE = 0.5  # x R: spoil rising this far above the original surface is cleared (FEE without surcharge)
@@ -213,7 +220,7 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
         t = max(2.0 * R, 0.02)
         length = (d + 1.5 * d + 4 * R) / math.sin(alpha)
         travel = BLADE_TRAVEL * d
-        floor = -(d + max(d / 3.0, 5 * R))
+        floor = -(d + max(SOIL_BELOW * d, 5 * R))
         half_y = w / 2 + d + 2 * R
         lx = travel + 3.5 * d
         rot = _rot_y(alpha - math.pi / 2)
@@ -243,12 +250,13 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
         wall_h = 1.8 * H
         centre = [-RELEASE_GAP * R - t / 2, 0.0, -H - 0.5 * R + wall_h / 2]
         travel = WALL_TRAVEL * H
+        bed_depth = (1.0 + SOIL_BELOW) * H
         soil = {"soil.preset": p["preset"],
                 "soil.overrides": {"radius": R, "friction_angle_deg": p["friction_deg"], "density": p["density"],
                                    "cohesion": 0.0, "tool_friction_angle_deg": 0.0},
-                "soil.bed": [_box((0, -half_y, -H), (lx, half_y, 0))],
-                "soil.domain": _box((-t - 0.1, -half_y, -H - 0.05), (lx + 0.1, half_y, wall_h + 1.0)),
-                "soil.settle_time": _settle_time(H),
+                "soil.bed": [_box((0, -half_y, -bed_depth), (lx, half_y, 0))],
+                "soil.domain": _box((-t - 0.1, -half_y, -bed_depth - 0.05), (lx + 0.1, half_y, wall_h + 1.0)),
+                "soil.settle_time": _settle_time(bed_depth),
                 "tools": [{"name": "wall", "box": [t, 2 * half_y + 4 * R, wall_h], "start": centre,
                            "velocity": [WALL_SPEED, 0.0, 0.0]}],
                 "sim.duration": (travel + RELEASE_GAP * R) / WALL_SPEED}
