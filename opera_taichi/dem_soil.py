@@ -459,8 +459,9 @@ class DemSoil:
         self._allocate(n)
         if len(arrays["nbr_j"]) > self._nbr_j.shape[0]:
             self._allocate_neighbors(len(arrays["nbr_j"]))
-        if arrays["surf_id"].shape[1] < dem.SURF_ID_WIDTH:  # saved before the tool-spring bits: no tool touched it
-            arrays["surf_id"] = np.pad(arrays["surf_id"], ((0, 0), (0, dem.SURF_ID_WIDTH - arrays["surf_id"].shape[1])))
+        missing = dem.SURF_ID_WIDTH - arrays["surf_id"].shape[1]
+        if missing > 0:  # saved before the tool-spring bits column: cached beds touch no tool, so the bits are 0
+            arrays["surf_id"] = np.pad(arrays["surf_id"], ((0, 0), (0, missing)))
         for name, value in arrays.items():
             target = getattr(self, "_" + name)
             full = target.to_numpy()

@@ -176,3 +176,25 @@ def test_runs_are_bit_for_bit_reproducible():
     (pos_a, wrench_a, rebuilds), (pos_b, wrench_b, _) = run(), run()
     assert rebuilds > 3 and np.abs(wrench_a).max() > 0
     assert np.array_equal(pos_a, pos_b) and np.array_equal(wrench_a, wrench_b)
+
+
+def test_tool_spring_is_dropped_when_the_contact_ends():
+    """A particle's tangential spring against a tool lives while they touch and is cleared (with its bit in the
+    surf_id column the step kernel checks) once they part: a later contact starts from a relaxed spring."""
+    from opera_taichi.kernels import dem
+
+    soil = make_soil(friction_angle_deg=40)
+    t = soil.add_tool("plate", trimesh.creation.box([0.6, 0.6, 0.04]))
+    r = soil.micro.radius
+    soil.set_tool_state(t, [0, 0, 0.5], [0, 0, 0, 1], [0, 0, 0], [0, 0, 0])
+    soil.set_particles([[0, 0, 0.52 + 0.99 * r]])
+    soil.advance(0.2)
+    soil.set_tool_state(t, [0, 0, 0.5], [0, 0, 0, 1], [0.01, 0, 0], [0, 0, 0])  # drags the resting sphere along
+    soil.advance(0.05)
+    slot = dem.WALL_SLOTS + t
+    assert np.abs(soil._surf_h.to_numpy()[0, slot][:3]).max() > 0.0  # the spring holds it by static friction
+    assert soil._surf_id.to_numpy()[0, dem.TOOL_BITS] == 1 << t
+    soil.set_tool_state(t, [0, 0, -0.5], [0, 0, 0, 1], [0, 0, 0], [0, 0, 0])  # the plate drops away
+    soil.advance(0.01)
+    assert np.all(soil._surf_h.to_numpy()[0, slot] == 0.0)
+    assert soil._surf_id.to_numpy()[0, dem.TOOL_BITS] == 0
