@@ -118,6 +118,16 @@ def _build_motion(scene, machine, kinematics, initial_q) -> JointProfile | None:
     raise UserError(f"motion.type: unknown motion type {motion.type!r}")
 
 
+
+def soil_parameters(soil):
+    """(SoilBulk, SoilMicro) of a scene's soil section: the preset with its overrides, and the micro-parameters
+    the bulk-to-micro mapping gives them for the deepest bed."""
+    from .soil import bulk_to_micro, resolve_soil
+
+    bulk = resolve_soil(soil.preset, dict(soil.overrides or {}))
+    bed_depth = max((-float(b.min[2]) for b in soil.bed), default=1.0)
+    return bulk, bulk_to_micro(bulk, bed_depth=max(bed_depth, 4 * bulk.radius))
+
 def build_model(scene) -> Model:
     """Everything that does not change during the run, checked: raises UserError on bad input.
     Needs no Taichi and no PyBullet, so `validate` is quick."""
@@ -148,12 +158,10 @@ def build_model(scene) -> Model:
         raise UserError("motion: a motion script needs a machine (add a `machine` section)")
     model.tools = _build_tools(scene)
     if scene.soil is not None:
-        from .soil import bulk_to_micro, check_dt, resolve_soil
+        from .soil import check_dt
 
         soil = scene.soil
-        model.soil_bulk = resolve_soil(soil.preset, dict(soil.overrides or {}))
-        bed_depth = max((-float(b.min[2]) for b in soil.bed), default=1.0)
-        model.soil_micro = bulk_to_micro(model.soil_bulk, bed_depth=max(bed_depth, 4 * model.soil_bulk.radius))
+        model.soil_bulk, model.soil_micro = soil_parameters(soil)
         if scene.sim.soil_dt is not None:
             check_dt(model.soil_micro, float(scene.sim.soil_dt))
             model.soil_dt = float(scene.sim.soil_dt)

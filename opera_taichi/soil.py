@@ -21,16 +21,17 @@ ROLLING_DAMPING = 0.3     # EPSD viscous rolling damping ratio while the rolling
 TANGENTIAL_RATIO = 2.0 / 7.0
 WALL_STIFFNESS_RATIO = 2.0   # ground, walls and tools: k = 2 k_n, the same surface compliance as a sphere
 
-# Rolling resistance (EPSD) for spheres with mu = tan(phi): mu_r = ROLLING_MAX min(1, tan(phi) / tan(33 deg))^1.5,
+# Rolling resistance (EPSD) for spheres with mu = tan(phi): mu_r = ROLLING_MAX min(1, tan(phi) / tan(33 deg))^1.75,
 # 0.3 for sand at 33 deg and above. Calibrated on heaps poured through a hopper at the default validation resolution
-# (`validate-physics repose`, 16 diameters across the column): sand (33 deg) mu_r 0.3 -> 32.6 deg; glass beads
-# (22 deg, target 22) mu_r 0.187 -> 24.7 deg, 0.12 -> 20.6 deg, hence the exponent 1.5 (mu_r 0.147 -> 23.2). The cap
+# (`validate-physics repose`, 16 diameters across the column): sand (33 deg) mu_r 0.3 -> 32.7 deg; glass beads
+# (22 deg, target 22) mu_r 0.187 -> 24.7 deg, 0.147 -> 24.2, 0.130 -> 21.5, 0.12 -> 20.6, hence the exponent 1.75
+# (mu_r 0.131; with 1.5, 0.147, the heap stood 0.2 deg outside the 22 +- 2 deg gate). The cap
 # 0.3 comes from the coarse column collapse and passive wall runs (beds poured with friction, masses matched to the
 # bulk density): above ~0.33 the friction pour gets very loose (solid fraction < 0.41) and weak (wall 0.92 x at 0.33,
 # 0.61 x at 0.4; run-out at a = 1 1.07 at 0.35). With a dense, frictionless pour the same mu_r made beds 4-10 x too
 # strong. See docs/validation.md.
 ROLLING_MAX = 0.30
-ROLLING_EXPONENT = 1.5
+ROLLING_EXPONENT = 1.75
 ROLLING_REFERENCE_ANGLE = math.radians(33.0)
 
 PRESETS: dict[str, dict] = {
@@ -160,7 +161,8 @@ def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
 
 
 def calibrated_rolling_resistance(friction_angle: float) -> float:
-    """Rolling resistance of the default mapping: ROLLING_MAX (tan(phi) / tan(33 deg))^1.5, capped at ROLLING_MAX."""
+    """Rolling resistance of the default mapping: ROLLING_MAX (tan(phi) / tan(33 deg))^ROLLING_EXPONENT, capped at
+    ROLLING_MAX."""
     ratio = math.tan(friction_angle) / math.tan(ROLLING_REFERENCE_ANGLE)
     return ROLLING_MAX * min(1.0, ratio) ** ROLLING_EXPONENT
 
@@ -227,7 +229,7 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     - Damping gamma_n = c sqrt(m_eff k), c = 2(-ln e)/sqrt(pi^2 + ln^2 e): restitution e for every pair
       (`damping`; DemSoil re-tunes c for its substep with damping_for_step, see there).
     - Tangential spring k_t = 2/7 k_n (same period as the normal one) with history, Coulomb cap mu F_n,
-      mu = tan(phi). Rolling resistance (EPSD, type C): mu_r = 0.3 min(1, tan(phi) / tan(33 deg))^1.5
+      mu = tan(phi). Rolling resistance (EPSD, type C): mu_r = 0.3 min(1, tan(phi) / tan(33 deg))^1.75
       (0.3 at 33 deg and above), calibrated on poured heaps, column collapse and passive-wall runs (see
       ROLLING_MAX).
     - Solid density rho / SOLID_FRACTION is a first guess: DemSoil scales the masses of a settled bed so that it

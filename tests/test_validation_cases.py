@@ -9,6 +9,7 @@ from opera_taichi.cli import main
 from opera_taichi.errors import UserError
 from opera_taichi.scene import load_scene
 from opera_taichi.validation import cases, report
+from opera_taichi.validation import references as ref
 
 
 @pytest.mark.parametrize("case", cases.CASES)
@@ -148,6 +149,15 @@ def test_report_from_metrics(tmp_path):
     assert gates["run-out log-log slope, a <= 1"]["measured"] == pytest.approx(1.0)
 
 
+def _finished_manifest(case: str, sets: list[str], **soil) -> dict:
+    """The manifest of a finished run of these overrides, as run_scene writes it (status, soil micro, version)."""
+    from opera_taichi.dem_soil import SOLVER_VERSION
+    from opera_taichi.simulation import soil_parameters
+
+    _, micro = soil_parameters(load_scene(cases.scene_file(case), sets).soil)
+    return {"status": "done", "soil": {"solver_version": SOLVER_VERSION, "micro": vars(micro), **soil}}
+
+
 def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
     """`all --resume` keeps a finished run made with the same overrides and solver version, and runs again a gate
     whose run is missing, unfinished, made by another solver version or with other parameters."""
@@ -161,8 +171,7 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
         ran.append(out_dir.name)
         sets, _ = cases.build_overrides(case, cases.parse_params(case, params), resolution, work_dir=out_dir)
         (out_dir / "run").mkdir(parents=True, exist_ok=True)
-        manifest = {"status": "done", "soil": {"solver_version": SOLVER_VERSION}}
-        (out_dir / "run" / "manifest.json").write_text(json.dumps(manifest))
+        (out_dir / "run" / "manifest.json").write_text(json.dumps(_finished_manifest(case, sets)))
         metrics = dict(case=case, metric="x", unit="1", measured=1.0, reference=1.0, relative_error=0.0, passed=True,
                        gate="g", parameters={}, resolution=resolution, particles=1, wall_time_s=1.0,
                        run_dir=str(out_dir / "run"), overrides=sets)
@@ -171,6 +180,8 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
 
     monkeypatch.setattr(report, "run_case", fake_run_case)
     monkeypatch.setattr(report, "write_report", lambda results, path, command, not_run=(): path)
+    monkeypatch.setattr(cases, "measure", lambda case, run_dir, p, geo: dict(metric="x", unit="1", measured=1.0,
+                                                                           reference=1.0, tolerance=0.1, gate="g"))
     labels = [label for label, _, _ in report.gate_set()]
     report.run_all("coarse", tmp_path, tmp_path / "v.md", resume=True)
     assert ran == labels  # nothing to reuse yet
@@ -184,9 +195,10 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
     edit(labels[1], "run/manifest.json", lambda m: m.update(status="diverged"))
     edit(labels[2], "metrics.json", lambda m: m["overrides"].append("soil.overrides.radius=0.1"))
     (tmp_path / labels[3] / "metrics.json").unlink()
+    edit(labels[4], "run/manifest.json", lambda m: m["soil"]["micro"].update(mu_r=0.25))  # mapping recalibrated
     ran.clear()
     report.run_all("coarse", tmp_path, tmp_path / "v.md", resume=True)
-    assert ran == labels[:4]
+    assert ran == labels[:5]
     ran.clear()
     report.run_all("coarse", tmp_path, tmp_path / "v.md", resume=False)
     assert ran == labels  # without --resume every gate runs
@@ -195,15 +207,12 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
 def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, monkeypatch):
     import json
 
-    from opera_taichi.dem_soil import SOLVER_VERSION
-
     label, case, params = report.gate_set()[4]  # the passive wall
     params = {k: str(v) for k, v in params.items()}
     out = tmp_path / "runs"
     sets, _ = cases.build_overrides(case, cases.parse_params(case, params), "coarse", work_dir=out / label)
     (out / label / "run").mkdir(parents=True)
-    (out / label / "run" / "manifest.json").write_text(json.dumps({"status": "done",
-                                                                   "soil": {"solver_version": SOLVER_VERSION}}))
+    (out / label / "run" / "manifest.json").write_text(json.dumps(_finished_manifest(case, sets)))
     metrics = dict(case=case, metric="peak_thrust_per_width", unit="N/m", measured=3000.0, reference=2769.0,
                    relative_error=3000 / 2769 - 1, passed=True, gate="g", parameters={}, resolution="coarse",
                    particles=700, wall_time_s=20.0, run_dir=str(out / label / "run"), overrides=sets)
@@ -213,6 +222,8 @@ def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, mo
         raise AssertionError("--report-only must not run a case")
 
     monkeypatch.setattr(report, "run_case", no_run)
+    monkeypatch.setattr(cases, "measure", lambda case, run_dir, p, geo: dict(
+        metric="peak_thrust_per_width", unit="N/m", measured=3000.0, reference=2769.0, tolerance=0.2, gate="g"))
     path = report.run_all("coarse", out, tmp_path / "v.md", report_only=True)
     rows = [line for line in path.read_text().splitlines() if line.startswith("| ") and "|---" not in line]
     assert any(row.startswith(f"| {label} |") and "| 3000 |" in row for row in rows)
@@ -224,3 +235,45 @@ def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, mo
 def test_resume_and_report_only_are_only_for_the_gate_set(flag, capsys):
     assert main(["validate-physics", "repose", flag]) == 2
     assert f"{flag}: only with `all`" in capsys.readouterr().err
+
+
+def test_a_kept_run_is_measured_again_with_the_current_code(tmp_path):
+    """--resume / --report-only read the metric again from the run folder: a metrics.json written by older
+    measuring code (here a stale peak) is replaced by what this code reads from tool_wrench.csv."""
+    import json
+
+    label, case, params = report.gate_set()[4]  # the passive wall
+    params = {k: str(v) for k, v in params.items()}
+    out = tmp_path / label
+    sets, geo = cases.build_overrides(case, cases.parse_params(case, params), "coarse", work_dir=out)
+    run = out / "run"
+    run.mkdir(parents=True)
+    bulk = {"density": 1700.0, "friction_angle": math.radians(35.0), "cohesion": 0.0}
+    (run / "manifest.json").write_text(json.dumps(_finished_manifest(case, sets, bulk=bulk)))
+    # thrust 2000 N/m per metre of pit width with one spike of 4000 in one sample
+    rows = ["t,tool,fx,fy,fz,tx,ty,tz"]
+    for i in range(400):
+        t = i * 0.005
+        fx = -2000.0 * geo["width"] * (2.0 if i == 200 else 1.0)
+        rows.append(f"{t},wall,{fx},0,0,0,0,0")
+    (run / "tool_wrench.csv").write_text("\n".join(rows) + "\n")
+    stale = dict(case=case, metric="peak_thrust_per_width", unit="N/m", measured=4000.0, reference=2769.0,
+                 relative_error=0.44, passed=False, gate="g", parameters={}, resolution="coarse", particles=700,
+                 wall_time_s=20.0, run_dir=str(run), overrides=sets)
+    (out / "metrics.json").write_text(json.dumps(stale))
+    m = cases.finished_metrics(case, params, "coarse", out)
+    window = int(round(2.0 * geo["radius"] / (cases.WALL_SPEED * 0.005)))
+    assert m["measured"] == pytest.approx(2000.0 + 2000.0 / window, rel=1e-9)  # the spike is averaged out
+    assert m["reference"] == pytest.approx(ref.rankine_passive_thrust(0.3, math.radians(35.0), 1700.0), rel=1e-9)
+    assert m["particles"] == 700 and m["wall_time_s"] == 20.0
+    assert json.loads((out / "metrics.json").read_text())["measured"] == m["measured"]
+
+
+def test_peak_of_travel_average_is_the_largest_window_mean():
+    x = np.arange(100) * 0.001
+    force = np.where(np.arange(100) % 2 == 0, 1.1, 0.9) * (1000.0 + 5000.0 * x)  # rising, +-10% grain jumps
+    peak = cases.peak_of_travel_average(x, force, 0.01)
+    last = force[-10:].mean()
+    assert peak == pytest.approx(last, rel=1e-12)
+    assert peak < force.max() * 0.95  # the top of the noise is not the peak
+    assert cases.peak_of_travel_average(x, force, 1.0) == pytest.approx(force.mean(), rel=1e-12)  # window > record

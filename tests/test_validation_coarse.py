@@ -12,8 +12,8 @@ from opera_taichi.validation import cases, references as ref
 
 # Known gaps, tracked in the validation issue: with friction-poured beds and rolling resistance 0.3 the coarse
 # column collapse (run-out 1.22 at a = 1), passive wall and vertical cuts pass and are asserted; the blade draft
-# is still 2.5-3 x the FEE at coarse resolution (its loose bed compacts ahead of the blade instead of failing at a
-# peak; the passive wall at default resolution peaks at 1.22 x Rankine), and the
+# is still 2.5-3 x the FEE at coarse resolution (3 grains across the cut; 1.7 x at the default 6; the over-strength
+# falls with resolution, as the passive wall's does: 1.15 / 1.09 / 1.02 x Rankine at 5 / 10 / 15 across H), and the
 # coarse poured heap (~500 grains, an outlet 5 grains across) stands at ~25 deg where the default one stands at
 # 32.6. Those two run and print XFAIL/XPASS in CI, so progress is visible; not strict, because coarse runs near a
 # band edge may flip.
@@ -47,10 +47,11 @@ def test_column_collapse_runout_coarse(tmp_path):
 @pytest.mark.slow
 def test_passive_wall_peak_coarse(tmp_path):
     m = _run(tmp_path, "passive_wall", {"height": "0.2"})
-    rankine = m["reference"]
-    # the thrust must build past the at-rest value (K0 = 1 - sin phi = 0.43, 12% of Kp) and, 5 diameters across H,
-    # stay within a factor 2 of Rankine: a dense packing's peak friction (~45 deg, Kp 5.8) is 1.6 x at most
-    assert 0.12 * rankine < m["measured"] < 2.0 * rankine
+    # 5 grains across H: the peak (thrust averaged over one grain diameter of travel, up to 0.2 H) reads 1.09 x
+    # Rankine here and 1.15 x at H = 0.3 m (1.09 x at the default 10 grains, 1.02 x at 15): 35% leaves room for the
+    # round-off spread (~2%) and still fails a bed that is half again too strong or never builds past the at-rest
+    # thrust (K0 = 1 - sin phi: 12% of Kp)
+    assert abs(m["relative_error"]) <= 0.35
 
 
 @pytest.mark.slow
