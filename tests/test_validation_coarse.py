@@ -12,7 +12,7 @@ from opera_taichi.validation import cases, references as ref
 
 # Known gaps, tracked in the validation issue: with friction-poured beds and rolling resistance 0.3 the coarse
 # column collapse (run-out 1.22 at a = 1), passive wall and vertical cuts pass and are asserted; the blade draft
-# is still 2.5-3 x the FEE at coarse resolution (3 grains across the cut; 1.7 x at the default 6; the over-strength
+# is still 2.5-3 x the FEE at coarse resolution (3 grains across the cut; 1.7 x at 6, 1.6 x at 8; the over-strength
 # falls with resolution, as the passive wall's does: 1.15 / 1.09 / 1.02 x Rankine at 5 / 10 / 15 across H), and the
 # coarse poured heap (~500 grains, an outlet 5 grains across) stands at ~25 deg where the default one stands at
 # 32.6. Those two run and print XFAIL/XPASS in CI, so progress is visible; not strict, because coarse runs near a

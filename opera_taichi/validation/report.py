@@ -117,13 +117,14 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    signal smoothed over 1.5 mm, which this report used before, was the top of that noise (3,426 N/m, 1.24 x, from
    the same run that now reads 3,023 N/m, 1.09 x).
    The blade over-strength falls with resolution too: a90 d0.2 w1.0, draft averaged over d to 2d of travel,
-   2.5-3 x the earthmoving equation at 3 grains across d (coarse), 1.74 x at 6 (default, 2,144 N/m), 1.56 x at 8
-   (1,926 N/m; 33,725 grains). The excess goes as 1/n (n grains across d): c + a/n through 6 and 8 gives
-   a = 4.2, c = 1.03, i.e. the blade acts as if about two grain diameters deeper than its edge (after the cut the
-   bed is loosened to solid fraction 0.34-0.46 in the two diameters below the cut floor), and the force tends to
-   the earthmoving equation as the grains shrink. The 15% gate needs about 37 grains across d by that fit. soil.md
-   asks 8-10 for forces within tens of percent; the default's 6 keeps a blade run at 16-27 min on 2 cores (33 min
-   at 8 for 2d of travel, settling included; hours at 10 and more). The blade's d^2 and w scalings pass at 6.
+   over the earthmoving equation, at 3 / 4 / 6 (default) / 8 grains across d: 2.64 / 2.33 / 1.74 / 1.56 x
+   (1,867 / 4,340 / 16,377 / 33,725 grains). The excess goes about as 1/n (n grains across d): a least-squares
+   c + a/n gives c = 0.89, a = 5.4 (c = 1.03 through 6 and 8 alone), so the draft tends to the equation, within
+   about 10%, as the grains shrink. The blade acts as if about two grain diameters deeper than its edge (after the
+   a90 d0.3 cut the bed is loosened to solid fraction 0.34-0.46 in the two diameters below the cut floor, against
+   0.50-0.56 at that depth ahead of the blade). The 15% gate needs about 20-37 grains across d by these fits;
+   soil.md asks 8-10 for forces within tens of percent. The default's 6 keeps a blade run at 16-27 min on 2 cores
+   (33 min at 8 for 2d of travel, settling included; hours at 10 and more). The blade's d^2 and w scalings pass at 6.
    **Micro friction does not set the strength of a poured bed alone.** Coarse wall (5 across, spoil cleared), thrust
    over Rankine at 0.2 H / 0.5 H: rolling resistance 0.3 1.15 / 1.65 (solid fraction 0.469), 0.2 1.16 / 1.52
    (0.479), 0.1 0.85 / 1.48 (0.497), 0 0.79 / 0.99 (0.538); particle friction tan 25 deg (rolling resistance
