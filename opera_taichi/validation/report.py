@@ -120,7 +120,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    over the earthmoving equation, at 3 / 4 / 6 (default) / 8 grains across d: 2.64 / 2.33 / 1.74 / 1.56 x
    (1,867 / 4,340 / 16,377 / 33,725 grains). The excess goes about as 1/n (n grains across d): a least-squares
    c + a/n gives c = 0.89, a = 5.4 (c = 1.03 through 6 and 8 alone), so the draft tends to the equation, within
-   about 10%, as the grains shrink. The blade acts as if about two grain diameters deeper than its edge (after the
+   about 10%, as the grains shrink. The blade acts as if two to three grain diameters deeper than its edge (after the
    a90 d0.3 cut the bed is loosened to solid fraction 0.34-0.46 in the two diameters below the cut floor, against
    0.50-0.56 at that depth ahead of the blade). The 15% gate needs about 20-37 grains across d by these fits;
    soil.md asks 8-10 for forces within tens of percent. The default's 6 keeps a blade run at 16-27 min on 2 cores
