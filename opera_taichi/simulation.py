@@ -118,7 +118,6 @@ def _build_motion(scene, machine, kinematics, initial_q) -> JointProfile | None:
     raise UserError(f"motion.type: unknown motion type {motion.type!r}")
 
 
-
 def soil_parameters(soil):
     """(SoilBulk, SoilMicro) of a scene's soil section: the preset with its overrides, and the micro-parameters
     the bulk-to-micro mapping gives them for the deepest bed."""
@@ -127,6 +126,7 @@ def soil_parameters(soil):
     bulk = resolve_soil(soil.preset, dict(soil.overrides or {}))
     bed_depth = max((-float(b.min[2]) for b in soil.bed), default=1.0)
     return bulk, bulk_to_micro(bulk, bed_depth=max(bed_depth, 4 * bulk.radius))
+
 
 def build_model(scene) -> Model:
     """Everything that does not change during the run, checked: raises UserError on bad input.

@@ -344,8 +344,8 @@ def travel_average(displacement: np.ndarray, force: np.ndarray, window: float) -
     """Means of `force` over `window` of travel, for the windows wholly inside the record, each at the middle of its
     window (one window over the whole record if it is shorter)."""
     displacement, force = np.asarray(displacement, float), np.asarray(force, float)
-    step = float(np.median(np.diff(displacement)))
-    k = min(len(force), max(1, int(round(window / step))))
+    step = float(np.median(np.diff(displacement))) if len(displacement) > 1 else 0.0
+    k = min(len(force), max(1, int(round(window / step)))) if step > 0.0 else 1
     middle = np.convolve(displacement, np.ones(k) / k, mode="valid")
     return middle, np.convolve(force, np.ones(k) / k, mode="valid")
 
@@ -529,7 +529,10 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
     _, micro = soil_parameters(load_scene(scene_file(case), sets).soil)
     if manifest["soil"].get("micro") != json.loads(json.dumps(vars(micro))):  # the mapping was recalibrated
         return None
-    return _score(case, p, geo, sets, resolution, out, run_dir, metrics["particles"], metrics["wall_time_s"])
+    try:
+        return _score(case, p, geo, sets, resolution, out, run_dir, metrics["particles"], metrics["wall_time_s"])
+    except (OSError, ValueError, KeyError):  # a recorder file is missing or unreadable: run it again
+        return None
 
 
 def _si_params(p: dict) -> dict:
