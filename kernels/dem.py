@@ -90,6 +90,8 @@ P_SQRT_KN = 24    # sqrt of P_KN, P_K_WALL, P_K_TOOL
 P_SQRT_KWALL = 25
 P_SQRT_KTOOL = 26
 P_WALL_TOP = 27   # top of the pit walls: 0 (the ground), raised while a bed is poured so nothing spills
+P_ADH_F = 28      # soil-tool adhesion: attraction at contact and added tangential capacity, N
+P_ADH_D = 29      # adhesion range beyond contact, m
 P_PITS = 32       # pits: 6 entries each (min xyz, max xyz), MAX_PITS of them
 N_PRM = P_PITS + 6 * MAX_PITS
 
@@ -141,13 +143,15 @@ SDF = ti.types.ndarray(dtype=vec4f, ndim=1)
 
 # ----------------------------------------------------------------------------------------------- contact law
 @ti.func
-def contact_law(n, overlap, v_c, w_rel, sqrt_mk, sqrt_ik, r_roll, hist, k, mu, mu_r, prm: ti.template(), dt):
+def contact_law(n, overlap, v_c, w_rel, sqrt_mk, sqrt_ik, r_roll, hist, k, mu, mu_r, prm: ti.template(), dt,
+                cap_extra=0.0):
     """Force and torque on body A of one contact (n points from B to A, overlap > 0).
 
     v_c: velocity of A's contact point relative to B's; w_rel: angular velocity of A relative to B;
     sqrt_mk, sqrt_ik: sqrt(m_eff k) and sqrt(I_eff k) (effective mass and moment of inertia of the pair);
-    hist: (tangential spring, rolling spring). Returns the force on A, its tangential part, the rolling
-    torque on A, and the new history; the torque on A is lever x f_t + m_r (B gets the opposite of each).
+    hist: (tangential spring, rolling spring); cap_extra: tangential capacity added to mu F_n (adhesion). Returns
+    the force on A, its tangential part, the rolling torque on A, and the new history; the torque on A is
+    lever x f_t + m_r (B gets the opposite of each).
     Normal: linear spring-dashpot (Cundall & Strack). The dashpot may pull briefly while the bodies separate;
     that is what makes the restitution exactly e (clipping it would raise e for strong damping). Tangential: spring k_t = P_KT_RATIO k with history,
     capped at mu F_n (Coulomb); the stored spring is projected onto the current tangent plane each step (the
@@ -165,7 +169,7 @@ def contact_law(n, overlap, v_c, w_rel, sqrt_mk, sqrt_ik, r_roll, hist, k, mu, m
     xi = vec3(hist[0], hist[1], hist[2])
     xi += v_t * dt - xi.dot(n) * n
     f_t = -kt * xi - gt * v_t
-    cap = mu * f_press
+    cap = mu * f_press + cap_extra
     ft2 = f_t.dot(f_t)
     if ft2 > cap * cap:
         # sliding: force at the Coulomb limit, spring set to what that force implies (Luding 2008)
@@ -190,19 +194,21 @@ def contact_law(n, overlap, v_c, w_rel, sqrt_mk, sqrt_ik, r_roll, hist, k, mu, m
 
 
 @ti.func
-def cohesion_force(gap, prm: ti.template()):
-    """Attraction magnitude between two particles with surface gap `gap` (negative = overlapping).
-
-    Holz-style bond: F at and inside contact, falling linearly to 0 at gap = D, so the force is continuous.
-    """
+def band_attraction(gap, big_f, dist):
+    """Attraction magnitude at surface gap `gap` (negative = overlapping) of a Holz-style bond: big_f at and inside
+    contact, falling linearly to 0 at gap = dist, so the force is continuous."""
     f = ti.f64(0.0)
-    big_f = prm[P_COH_F]
-    dist = prm[P_COH_D]
     if gap <= 0.0:
         f = big_f
     elif gap < dist:
         f = big_f * (1.0 - gap / dist)
     return f
+
+
+@ti.func
+def cohesion_force(gap, prm: ti.template()):
+    """Attraction between two particles with surface gap `gap`: band_attraction(F, D) of the soil's cohesion."""
+    return band_attraction(gap, prm[P_COH_F], prm[P_COH_D])
 
 
 # ----------------------------------------------------------------------------------------------- pair forces
@@ -545,26 +551,35 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                         origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
                         sample = sample_sdf(sdf, tools, t, rot.transpose() @ (x - origin))
                         hit = False
-                        if sample[0] < r:
+                        # contact (gap < 0), or within the adhesion band beyond it (P_ADH_D: 0 without adhesion)
+                        if sample[0] < r + prm[P_ADH_D]:
                             g_world = rot @ vec3(sample[1], sample[2], sample[3])
                             g_norm = g_world.norm()
                             if g_norm > 1e-12:
-                                hit = True
                                 n = g_world / g_norm
                                 lever = -r * n
                                 x_c = x + lever
-                                w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
-                                v_tool = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]) + \
-                                    w_tool.cross(x_c - origin)
-                                f_c, f_t, m_r, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
-                                                                   w - w_tool, q2 * prm[P_SQRT_KTOOL],
-                                                                   ti.f64(SQRT_TWO_FIFTHS) * q2 * r * prm[P_SQRT_KTOOL],
-                                                                   r, surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
-                                                                   prm[P_MU_TOOL], prm[P_MU_R], prm, dt)
+                                f_c = vec3(0.0)
+                                if sample[0] < r:
+                                    hit = True
+                                    w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
+                                    v_tool = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]) + \
+                                        w_tool.cross(x_c - origin)
+                                    # adhesion: the tool holds the particle by attraction (below) and resists
+                                    # its sliding by P_ADH_F more than friction does (soil.bulk_to_micro)
+                                    sqrt_k = prm[P_SQRT_KTOOL]
+                                    f_c, f_t, m_r, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
+                                                                       w - w_tool, q2 * sqrt_k,
+                                                                       ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r,
+                                                                       surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
+                                                                       prm[P_MU_TOOL], prm[P_MU_R], prm, dt,
+                                                                       prm[P_ADH_F])
+                                    torque += lever.cross(f_t) + m_r
+                                    surf_h[i, WALL_SLOTS + t] = h_new
+                                    tool_bits |= 1 << t
+                                if prm[P_ADH_F] > 0.0:
+                                    f_c -= band_attraction(sample[0] - r, prm[P_ADH_F], prm[P_ADH_D]) * n
                                 force += f_c
-                                torque += lever.cross(f_t) + m_r
-                                surf_h[i, WALL_SLOTS + t] = h_new
-                                tool_bits |= 1 << t
                                 arm = x_c - origin
                                 on_tool = -f_c
                                 moment = arm.cross(on_tool)

@@ -185,6 +185,8 @@ class DemSoil:
         prm[dem.P_MU_WALL] = m.mu_wall
         prm[dem.P_K_TOOL] = m.k_tool
         prm[dem.P_MU_TOOL] = m.mu_tool
+        prm[dem.P_ADH_F] = m.adhesion_force
+        prm[dem.P_ADH_D] = m.adhesion_range
         prm[dem.P_G:dem.P_G + 3] = self.gravity
         prm[dem.P_DMIN:dem.P_DMIN + 3] = self.domain_min
         prm[dem.P_DMAX:dem.P_DMAX + 3] = self.domain_max
@@ -300,7 +302,9 @@ class DemSoil:
 
     # ------------------------------------------------------------------------------------------- beds
     def _cache_key(self, settle_time: float) -> str:
-        spec = dict(version=SOLVER_VERSION, micro=asdict(self.micro), beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
+        # keyed by what the settling depends on: no tool touches a bed while it settles, so not the adhesion
+        micro = {k: v for k, v in asdict(self.micro).items() if k not in ("adhesion_force", "adhesion_range")}
+        spec = dict(version=SOLVER_VERSION, micro=micro, beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
                     domain=(self.domain_min.tolist(), self.domain_max.tolist()), seed=self.seed, dt=self.dt,
                     gravity=self.gravity.tolist(), settle_time=settle_time, frictionless=POUR_FRICTIONLESS)
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:32]

@@ -340,7 +340,8 @@ class SoilConfig(_Model):
     overrides: Annotated[dict[str, _num()], _none_to({})] = Field(
         default_factory=dict, description="Bulk parameters replacing the preset's (density, friction_angle, "
         "friction_angle_deg, cohesion, youngs_modulus, restitution, radius, rolling_resistance, "
-        "tool_friction_angle, tool_friction_angle_deg; SI units); names are checked by the soil module.")
+        "tool_friction_angle, tool_friction_angle_deg, polydispersity, adhesion (soil-tool, Pa); SI units); names are "
+        "checked by the soil module.")
     domain: Box = Field(default_factory=lambda: Box(min=(-2.0, -6.0, -3.0), max=(12.0, 6.0, 8.0)),
                         description="Region where particles live; a particle leaving it is removed and "
                                     "counted as out-of-domain mass.")

@@ -15,7 +15,10 @@ SOLID_FRACTION = 0.6      # packing fraction of a settled bed; solid density = b
 COORDINATION = 6.0        # mean contacts per particle in Rumpf's strength formula
 STIFFNESS_SCALE = 1.0     # k_n = STIFFNESS_SCALE * E * 2R (a regular packing's modulus is ~ k_n / 2R)
 OVERLAP_RULE = 100.0      # k_n >= 100 rho g H d keeps the mean overlap under the bed's weight below ~1% of R
-COHESION_RANGE = 0.1      # cohesive band D = 0.1 R beyond contact
+COHESION_RANGE = 0.1      # cohesive band D = 0.1 R beyond contact (also the soil-tool adhesion band)
+# Tool area per soil-tool contact, in R^2: the grains touching a flat face cover about 55% of it in projection (a
+# random monolayer), one contact per pi R^2 / 0.55. Converts the adhesion c_a (Pa) to a force per contact.
+TOOL_CONTACT_AREA = math.pi / 0.55
 STEP_FRACTION = 15.0      # dt_limit = t_c / 15
 ROLLING_DAMPING = 0.3     # EPSD viscous rolling damping ratio while the rolling spring is elastic
 TANGENTIAL_RATIO = 2.0 / 7.0
@@ -65,6 +68,7 @@ class SoilBulk:
     radius: float             # mean particle radius, m
     rolling_resistance: float | None = None   # None -> calibrated_rolling_resistance(friction_angle)
     tool_friction_angle: float | None = None  # soil-tool friction angle; None -> 2/3 of friction_angle
+    adhesion: float = 0.0                     # soil-tool adhesion c_a, Pa (the earthmoving equation's c_a)
     polydispersity: float = 0.1               # radii uniform in R (1 +- polydispersity), against crystallisation
 
 
@@ -89,13 +93,16 @@ class SoilMicro:
     mu_wall: float
     k_tool: float
     mu_tool: float
+    adhesion_force: float     # soil-tool attraction at contact, and tangential capacity added to mu_tool F_n
+    adhesion_range: float     # the attraction falls linearly to zero at this surface gap
     dt_limit: float           # stable substep
     youngs_modulus: float     # kept for messages
     bulk_density: float
 
 
 _ALLOWED = ("density", "friction_angle", "friction_angle_deg", "cohesion", "youngs_modulus", "restitution",
-            "radius", "rolling_resistance", "tool_friction_angle", "tool_friction_angle_deg", "polydispersity")
+            "radius", "rolling_resistance", "tool_friction_angle", "tool_friction_angle_deg", "polydispersity",
+            "adhesion")
 
 
 def _number(key: str, value) -> float:
@@ -141,6 +148,8 @@ def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
             key, v = "friction_angle", math.radians(v)
         elif key == "cohesion":
             _check(key, v >= 0.0, "cohesion >= 0 Pa", v)
+        elif key == "adhesion":
+            _check(key, v >= 0.0, "adhesion >= 0 Pa", v)
         elif key == "youngs_modulus":
             _check(key, v > 0.0, "youngs_modulus > 0 Pa", v)
         elif key == "restitution":
@@ -238,6 +247,11 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
       c = sigma_t tan(phi), so F = c pi d^2 / (phi_s Z tan(phi)); attraction F at contact, falling linearly
       to 0 at a gap D = 0.1 R.
     - Tool friction mu_tool = tan(delta), delta = 2/3 phi unless given; ground friction = mu (rough floor).
+    - Adhesion c_a (soil-tool, Pa): each tool contact gets an attraction F_a (falling linearly to 0 at a gap of
+      0.1 R, as cohesion) and F_a of tangential capacity on top of mu_tool times its normal force. The attraction
+      raises the normal force by F_a, so the interface's shear strength is sigma tan(delta) + F_a (1 + tan(delta))
+      / A_c (A_c = TOOL_CONTACT_AREA R^2 of tool per contact): F_a = c_a A_c / (1 + tan(delta)) gives
+      tau = c_a + sigma tan(delta), the earthmoving equation's interface.
     - dt_limit = t_c / 15 for the lightest pair (both spheres at the smallest radius), with
       t_c = pi / sqrt(k/m_eff - (gamma/2m_eff)^2).
     """
@@ -258,6 +272,9 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     if bulk.cohesion > 0.0:
         cohesion_force = bulk.cohesion * math.pi * diameter ** 2 / (SOLID_FRACTION * COORDINATION * mu)
         cohesion_range = COHESION_RANGE * radius
+    mu_tool = math.tan(delta)
+    adhesion_force = bulk.adhesion * TOOL_CONTACT_AREA * radius ** 2 / (1.0 + mu_tool)
+    adhesion_range = COHESION_RANGE * radius if bulk.adhesion > 0.0 else 0.0
     damping = damping_factor(bulk.restitution)
     r_min = radius * (1.0 - bulk.polydispersity)
     m_min = solid_density * 4.0 / 3.0 * math.pi * r_min ** 3
@@ -269,7 +286,8 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
         mu=mu, mu_r=mu_r, rolling_damping=ROLLING_DAMPING,
         cohesion_force=cohesion_force, cohesion_range=cohesion_range,
         k_wall=WALL_STIFFNESS_RATIO * k_n, mu_wall=mu,
-        k_tool=WALL_STIFFNESS_RATIO * k_n, mu_tool=math.tan(delta),
+        k_tool=WALL_STIFFNESS_RATIO * k_n, mu_tool=mu_tool, adhesion_force=adhesion_force,
+        adhesion_range=adhesion_range,
         dt_limit=t_c / STEP_FRACTION, youngs_modulus=bulk.youngs_modulus, bulk_density=bulk.density)
 
 

@@ -37,6 +37,7 @@ def test_overrides_apply_with_degrees_converted():
     ({"friction_angle_deg": 90}, "soil.overrides.friction_angle_deg"),
     ({"friction_angle": 1.6}, "soil.overrides.friction_angle"),
     ({"cohesion": -1.0}, "soil.overrides.cohesion"),
+    ({"adhesion": -1.0}, "soil.overrides.adhesion"),
     ({"restitution": 0.0}, "soil.overrides.restitution"),
     ({"restitution": 1.5}, "soil.overrides.restitution"),
     ({"density": float("nan")}, "soil.overrides.density"),
@@ -75,6 +76,12 @@ def test_micro_mapping_follows_the_documented_rules():
     sigma_t = SOLID_FRACTION * 6.0 * micro.cohesion_force / (math.pi * d ** 2)
     assert sigma_t * math.tan(bulk.friction_angle) == pytest.approx(bulk.cohesion)
     assert 0 < micro.cohesion_range < bulk.radius
+    # no adhesion unless given; c_a = F_a (1 + tan delta) / A_c with A_c = pi R^2 / 0.55 (a monolayer's contacts)
+    assert micro.adhesion_force == 0.0 and micro.adhesion_range == 0.0
+    sticky = bulk_to_micro(resolve_soil("dirt", {"radius": 0.02, "adhesion": 1000.0}), bed_depth=1.0)
+    area = math.pi * bulk.radius ** 2 / 0.55
+    assert sticky.adhesion_force * (1.0 + sticky.mu_tool) / area == pytest.approx(1000.0)
+    assert sticky.adhesion_range == pytest.approx(micro.cohesion_range)
     # the stability limit is t_c / 15 of the lightest pair
     m_pair = 0.5 * micro.particle_mass
     assert micro.dt_limit == pytest.approx(contact_duration(micro.k_n, m_pair, micro.damping) / 15.0)

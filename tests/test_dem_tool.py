@@ -101,6 +101,53 @@ def test_particle_rests_on_a_tilted_plate_tool():
     assert np.linalg.norm(x - start) < 0.1 * r
 
 
+def _adhesive_plate(factor, g, **over):
+    """A frictionless plate (top at z = 0.52) with soil-tool adhesion whose force per contact is `factor` x m |g|."""
+    from opera_taichi.soil import TOOL_CONTACT_AREA
+
+    plain = make_soil(**over)
+    mass, r = plain.micro.particle_mass, plain.micro.radius
+    adhesion = factor * mass * g / (TOOL_CONTACT_AREA * r * r)  # Pa; tan(delta) = 0
+    soil = make_soil(adhesion=adhesion, tool_friction_angle_deg=0.0, **over)
+    assert soil.micro.adhesion_force == pytest.approx(factor * mass * g)
+    t = soil.add_tool("plate", trimesh.creation.box([0.6, 0.6, 0.04]))
+    soil.set_tool_state(t, [0, 0, 0.5], [0, 0, 0, 1], [0, 0, 0], [0, 0, 0])
+    return soil, r
+
+
+@pytest.mark.parametrize("factor, holds", [(1.25, True), (0.8, False)])
+def test_adhesion_holds_a_particle_under_a_plate_against_its_weight(factor, holds):
+    """The attraction: a grain touching the underside of a plate hangs there if the adhesion force exceeds its
+    weight, and falls if not."""
+    soil, r = _adhesive_plate(factor, 9.81)
+    start = np.array([0.0, 0.0, 0.48 - 0.999 * r])
+    soil.set_particles([start])
+    soil.advance(0.5)
+    drop = start[2] - soil.particles()["positions"][0][2]
+    if holds:
+        assert abs(drop) < 0.01 * r
+    else:
+        assert drop > 0.5 * 9.81 * 0.5 ** 2 * 0.1  # falling at (1 - 0.8) g at least
+
+
+@pytest.mark.parametrize("factor, holds", [(1.25, True), (0.8, False)])
+def test_adhesion_grips_a_particle_on_a_frictionless_plate(factor, holds):
+    """The grip: on a frictionless plate with gravity tilted 45 deg (a 45 deg slope), a grain stays put if the
+    adhesion force exceeds the pull along the slope, and slides if not, still on the plate (rolling resistance 1
+    keeps it from rolling, so the tangential capacity alone holds it)."""
+    g = (9.81, 0.0, -9.81)
+    soil, r = _adhesive_plate(factor, 9.81, gravity=g, rolling_resistance=1.0)
+    start = np.array([0.0, 0.0, 0.52 + 0.999 * r])
+    soil.set_particles([start])
+    soil.advance(0.5)
+    x = soil.particles()["positions"][0]
+    assert abs(x[2] - start[2]) < 0.01 * r  # on the plate
+    if holds:
+        assert np.linalg.norm(x - start) < 0.05 * r
+    else:
+        assert x[0] - start[0] > 0.5 * 9.81 * 0.5 ** 2 * 0.1  # sliding at (1 - 0.8) g_x at least
+
+
 def test_container_tool_carries_the_weight_of_the_soil_it_holds():
     soil = make_soil()
     t = soil.add_tool("bin", container_mesh())
@@ -125,9 +172,11 @@ def test_container_tool_carries_the_weight_of_the_soil_it_holds():
     assert carried == pytest.approx(p["masses"].sum(), rel=1e-12)
 
 
-def test_tool_forces_obey_newtons_third_law():
-    """No gravity, nothing else to push on: the particles' momentum change equals minus the tool impulse."""
-    soil = make_soil(gravity=(0, 0, 0), cohesion=2000.0)
+@pytest.mark.parametrize("adhesion", [0.0, 3000.0])
+def test_tool_forces_obey_newtons_third_law(adhesion):
+    """No gravity, nothing else to push on: the particles' momentum change equals minus the tool impulse (with the
+    soil-tool adhesion's attraction and grip too)."""
+    soil = make_soil(gravity=(0, 0, 0), cohesion=2000.0, adhesion=adhesion)
     t = soil.add_tool("plate", trimesh.creation.box([0.3, 0.3, 0.04]))
     rng = np.random.default_rng(5)
     r = soil.micro.radius

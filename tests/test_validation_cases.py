@@ -85,7 +85,7 @@ def test_vertical_cut_default_height_is_below_culmann():
     ("blade_cut", ["depht=0.2"], "--param depht: unknown parameter of blade_cut"),
     ("blade_cut", ["depth=x"], "--param depth: expected a number"),
     ("blade_cut", ["rake_deg=120"], "--param rake_deg"),
-    ("blade_cut", ["adhesion=100"], "no soil-tool adhesion"),
+    ("blade_cut", ["adhesion=-100"], "--param adhesion: expected a number in Pa >= 0"),
     ("repose", ["preset=mud"], "--param preset: expected one of"),
     ("column_collapse", ["aspect_ratio"], "expected NAME=VALUE"),
     ("nope", [], "unknown case 'nope'"),

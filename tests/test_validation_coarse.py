@@ -10,13 +10,10 @@ import pytest
 
 from opera_taichi.validation import cases, references as ref
 
-# Known gaps, tracked in the validation issue: with friction-poured beds and rolling resistance 0.3 the coarse
-# column collapse (run-out 1.22 at a = 1), passive wall and vertical cuts pass and are asserted; the blade draft
-# is still 2.5-3 x the FEE at coarse resolution (3 grains across the cut; 1.7 x at 6, 1.6 x at 8; the over-strength
-# falls with resolution, as the passive wall's does: 1.15 / 1.09 / 1.02 x Rankine at 5 / 10 / 15 across H), and the
-# coarse poured heap (~500 grains, an outlet 5 grains across) stands at ~25 deg where the default one stands at
-# 32.6. Those two run and print XFAIL/XPASS in CI, so progress is visible; not strict, because coarse runs near a
-# band edge may flip.
+# Known gap, tracked in the validation issue: the blade draft is still 2.5-3 x the FEE at coarse resolution (3 grains
+# across the cut; 1.7 x at 6, 1.6 x at 8; the over-strength falls with resolution, as the passive wall's does: 1.15 /
+# 1.09 / 1.02 x Rankine at 5 / 10 / 15 across H). It runs and prints XFAIL in CI, so progress is visible; not strict,
+# because a coarse run near the band edge may flip.
 CALIBRATION_PENDING = pytest.mark.xfail(reason="DEM calibration pending (validation issue)", strict=False)
 
 
@@ -54,10 +51,18 @@ def test_passive_wall_peak_coarse(tmp_path):
     assert abs(m["relative_error"]) <= 0.35
 
 
+COARSE_BLADE = {"depth": "0.15", "width": "0.75", "speed": "0.3"}
+
+
+@pytest.fixture(scope="module")
+def coarse_blade(tmp_path_factory):
+    return _run(tmp_path_factory.mktemp("blade"), "blade_cut", COARSE_BLADE)
+
+
 @pytest.mark.slow
 @CALIBRATION_PENDING
-def test_blade_cut_draft_coarse(tmp_path):
-    m = _run(tmp_path, "blade_cut", {"depth": "0.15", "width": "0.75", "speed": "0.3"})
+def test_blade_cut_draft_coarse(coarse_blade):
+    m = coarse_blade
     # 3 diameters across the cut (soil.md: 8-10 for tens of percent) and 0.3 m/s (inertia rho v^2 d = 2% of the
     # force): +-50% of the FEE draft; the vertical force on a smooth vertical blade is small next to the draft
     assert abs(m["relative_error"]) <= 0.5
@@ -65,11 +70,34 @@ def test_blade_cut_draft_coarse(tmp_path):
 
 
 @pytest.mark.slow
-@CALIBRATION_PENDING
+def test_blade_adhesion_adds_the_earthmoving_equations_adhesion_terms(coarse_blade, tmp_path):
+    """Soil-tool adhesion c_a = 2 kPa on the smooth vertical blade: the FEE adds c_a d N_ca to the draft (471 N/m
+    here) and c_a d of downward shear on the soil (V: -300 N/m). Measured increments over the same cut without
+    adhesion: 47% and 27% of those at 3 grains across d, 94% and 62% at 5 (the face carries its shear through a few
+    grains, as the blade's own over-strength falls with resolution). Bands 0.3-1.5 and 0.15-1.5 x the FEE's: fail
+    an adhesion that does not reach the blade or acts twice."""
+    m = _run(tmp_path, "blade_cut", dict(COARSE_BLADE, adhesion="2000"))
+    base = coarse_blade
+    manifest = json.loads((tmp_path / "blade_cut" / "run" / "manifest.json").read_text())
+    assert manifest["soil"]["bulk"]["adhesion"] == 2000.0 and manifest["soil"]["micro"]["adhesion_force"] > 0
+    assert m["parameters"]["adhesion"] == 2000.0 and base["parameters"]["adhesion"] == 0.0
+    d_draft = m["measured"] - base["measured"]
+    d_draft_fee = m["reference"] - base["reference"]
+    d_vertical = m["extra"]["vertical_force_per_width"] - base["extra"]["vertical_force_per_width"]
+    d_vertical_fee = m["extra"]["vertical_reference"] - base["extra"]["vertical_reference"]
+    assert d_vertical_fee == pytest.approx(-2000.0 * 0.15)  # alpha 90: V = -c_a d
+    assert 0.3 * d_draft_fee <= d_draft <= 1.5 * d_draft_fee, (d_draft, d_draft_fee)
+    assert 0.15 * d_vertical_fee >= d_vertical >= 1.5 * d_vertical_fee, (d_vertical, d_vertical_fee)
+
+
+@pytest.mark.slow
 def test_repose_angle_coarse(tmp_path):
     m = _run(tmp_path, "repose", {"preset": "sand"})
-    # ~600 particles, 8 across the column: flank fits are noisy, so +-5 deg instead of +-2 deg
-    assert abs(m["measured"] - m["reference"]) <= 5.0
+    # ~430 particles, 8 across the column: flank fits are noisy, so +-5 deg instead of +-2 deg. This is also the
+    # DEM issue's check that a heap poured from the sand preset stands at 28-38 deg (reads 29.4 here; 32.7 at the
+    # default resolution, docs/validation.md)
+    assert m["reference"] == pytest.approx(33.0)
+    assert 28.0 <= m["measured"] <= 38.0
     spread = max(m["extra"]["flank_angles_deg"]) - min(m["extra"]["flank_angles_deg"])
     assert spread < 10.0  # four flanks of one heap agree (symmetry)
 

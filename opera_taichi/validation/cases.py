@@ -10,6 +10,7 @@ Geometry (all quasi-static set-ups; x forward, z up, ground at z = 0):
   Spoil rising above the original surface is cleared (soil.clear_above = R/2): the FEE oracle has no
   surcharge (q = 0), and a pile growing ahead of the blade would add its q d N_q term. Draft = -fx, vertical
   on the soil = -fz of the soil's force on the blade, averaged over blade travel d..3d, per metre of width.
+  `adhesion` (c_a, Pa) becomes the soil's soil-tool adhesion (soil.bulk_to_micro) and enters the FEE's c_a terms.
 - passive_wall: a smooth (tool friction 0) box wall spanning the pit's width, reaching depth H, pushed 0.2 H
   into a bed 2 H deep (SOIL_BELOW: the soil goes on below the wall's base, as in Rankine's half-space); the
   peak of the thrust per metre of pit width averaged over one grain diameter of travel
@@ -72,7 +73,7 @@ PARAMS: dict[str, dict[str, Param]] = {
                                                                                     ">= 0 and < 60"),
         "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)), "density": Param(1700.0, "kg/m3"),
         "cohesion": Param(0.0, "Pa", lambda v: v >= 0, ">= 0"),
-        "adhesion": Param(0.0, "Pa", lambda v: v == 0, "0 (the DEM has no soil-tool adhesion yet)"),
+        "adhesion": Param(0.0, "Pa", lambda v: v >= 0, ">= 0"),
         "speed": Param(0.1, "m/s"), "preset": PRESET},
     "passive_wall": {"height": Param(0.3, "m"), "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)),
                      "density": Param(1700.0, "kg/m3"), "preset": PRESET},
@@ -235,7 +236,8 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
         x_back = centre[0] + corners[:, 0].min() - 0.1
         soil = {"soil.preset": p["preset"],
                 "soil.overrides": {"radius": R, "friction_angle_deg": p["friction_deg"], "density": p["density"],
-                                   "cohesion": p["cohesion"], "tool_friction_angle_deg": p["delta_deg"]},
+                                   "cohesion": p["cohesion"], "tool_friction_angle_deg": p["delta_deg"],
+                                   **({"adhesion": p["adhesion"]} if p["adhesion"] > 0 else {})},
                 "soil.bed": [_box((0, -half_y, floor), (lx, half_y, 0))],
                 "soil.domain": _box((x_back, -half_y, floor - 0.05), (lx + 0.1, half_y, top + 1.0)),
                 "soil.settle_time": _settle_time(-floor),
@@ -527,7 +529,10 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
     if not same:
         return None
     _, micro = soil_parameters(load_scene(scene_file(case), sets).soil)
-    if manifest["soil"].get("micro") != json.loads(json.dumps(vars(micro))):  # the mapping was recalibrated
+    now = json.loads(json.dumps(vars(micro)))
+    kept = manifest["soil"].get("micro") or {}
+    # the mapping was recalibrated; a micro-parameter added since the run matches when it is 0 (its feature is off)
+    if set(kept) - set(now) or any(kept.get(k, 0 if v == 0 else None) != v for k, v in now.items()):
         return None
     try:
         return _score(case, p, geo, sets, resolution, out, run_dir, metrics["particles"], metrics["wall_time_s"])
