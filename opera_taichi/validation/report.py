@@ -151,9 +151,10 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
 5. **Adhesion** `adhesion` (soil-tool c_a, Pa; an attraction and as much tangential grip per tool contact, see
    soil.py): check with the blade, `validate-physics blade_cut --param adhesion=CA` against the same cut without
    it; the increments of draft and vertical force compare with the earthmoving equation's c_a terms. Sand, d 0.15 m,
-   c_a 2 kPa: the draft rose by 47% of the FEE's c_a d N_ca term at 3 grains across d and 94% at 5; the downward
-   shear on the soil (c_a d) by 27% and 62%: the face carries its shear through a few grains and gains with
-   resolution as the blade's draft does.
+   3 grains across d, two settled beds: c_a 4 kPa raised the draft by 0.55 and 0.81 x the FEE's c_a d N_ca term and
+   the downward shear on the soil by 0.29 and 0.60 x c_a d; at 2 kPa the draft by 0.35 and 0.47 x. At 5 grains
+   across (one bed, 2 kPa): 0.94 and 0.62 x. The face carries its shear through a few grains and gains with
+   resolution, as the blade's draft does.
 6. Rerun `opera-taichi validate-physics all` and keep this report with the soil's parameters.
 """
 
