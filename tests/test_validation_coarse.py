@@ -44,10 +44,10 @@ def test_column_collapse_runout_coarse(tmp_path):
 @pytest.mark.slow
 def test_passive_wall_peak_coarse(tmp_path):
     m = _run(tmp_path, "passive_wall", {"height": "0.2"})
-    # 5 grains across H: the peak (thrust averaged over one grain diameter of travel, up to 0.2 H) reads 1.09 x
-    # Rankine here and 1.15 x at H = 0.3 m (1.09 x at the default 10 grains, 1.02 x at 15): 35% leaves room for the
-    # round-off spread (~2%) and still fails a bed that is half again too strong or never builds past the at-rest
-    # thrust (K0 = 1 - sin phi: 12% of Kp)
+    # 8 grains across H: the peak (thrust averaged over one grain diameter of travel, up to 0.2 H) reads 0.93-1.11 x
+    # Rankine on seeds 0-3 (1.09 x at the default 10 grains, 1.02 x at 15; at 5 grains seeds 0-5 spread 0.92-1.38 x,
+    # too wide for a band). 35% leaves room for that spread on another host's round-off and still fails a bed that
+    # is half again too strong or never builds past the at-rest thrust (K0 = 1 - sin phi: 12% of Kp)
     assert abs(m["relative_error"]) <= 0.35
 
 

@@ -107,7 +107,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
 
    | grains across H | particles | at 0.2 H | at 0.3 H | at 0.5 H |
    |---|---|---|---|---|
-   | 5 (coarse) | 1,490 | 1.15 | 1.53 | 1.65 |
+   | 5 | 1,490 | 1.15 | 1.53 | 1.65 |
    | 10 (default) | 12,238 | 1.09 | 1.15 | 1.30 |
    | 15 (fine) | 42,723 | 1.02 | 1.10 | - |
 
@@ -134,7 +134,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    seeds: single runs spread by about 15%). Nor does a shift of the micro-parameters pass the blade with the wall:
    at rake 90 and delta 0 both have Rankine's reference, and the steady cut reads 1.6 x the wall's peak at the
    default resolution, a ratio that a calibration would have to remove, not a level to lower.
-   **Micro friction does not set the strength of a poured bed alone.** Coarse wall (5 across, spoil cleared), thrust
+   **Micro friction does not set the strength of a poured bed alone.** Wall at 5 grains across H (spoil cleared), thrust
    over Rankine at 0.2 H / 0.5 H: rolling resistance 0.3 1.15 / 1.65 (solid fraction 0.469), 0.2 1.16 / 1.52
    (0.479), 0.1 0.85 / 1.48 (0.497), 0 0.79 / 0.99 (0.538); particle friction tan 25 deg (rolling resistance
    0.18 from the mapping) 0.86 / 1.42 (0.491). Lower friction packs denser and the two largely cancel (as particle
