@@ -134,10 +134,11 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    seeds: single runs spread by about 15%). Nor does a shift of the micro-parameters pass the blade with the wall:
    at rake 90 and delta 0 both have Rankine's reference, and the steady cut reads 1.6 x the wall's peak at the
    default resolution, a ratio that a calibration would have to remove, not a level to lower.
-   **The blade's over-strength is the rolling resistance's.** Without it the boundary layer all but goes: a90 d0.2
-   w1.0 (2d of travel) with rolling resistance 0 reads 1.39 x at 3 grains across d (2.64 x with the default 0.3)
-   and 0.99 x at the default 6 (1.74 x); at a90 d0.3 w1.5, 3 grains, 0 / 0.1 / 0.3 read 1.42-1.44 / 1.69-1.78 /
-   2.45-2.71 x (two seeds each), and without it the draft no longer hardens with travel. Taking the rolling
+   **The blade's over-strength is the rolling resistance's.** Without it most of it goes: a90 d0.2 w1.0 (2d of
+   travel) with rolling resistance 0 reads 1.39 x at 3 grains across d (2.64 x with the default 0.3) and 0.99 x at
+   the default 6 (1.74 x); at a90 d0.3 w1.5, 3 grains, 0 / 0.1 / 0.3 read 1.42-1.44 / 1.69-1.78 / 2.45-2.71 x (two
+   seeds each), and without it the draft no longer hardens with travel. Part of that is a weaker material (the wall
+   at 5 grains across H reads 0.79 x at 0.2 H without it, above), so 0.99 x is not a calibration. Taking the rolling
    resistance off the tool contacts alone changes little (2.48 / 2.28 against 2.71 / 2.45 x). But the heaps need
    it: it stands in for the grains' shape, and spheres without it heap at about 20 deg. So the blade gates at the
    default resolution need the heaps' angle from another source than rolling resistance (non-spherical grains:
