@@ -57,6 +57,7 @@ def _cmd_run(args) -> int:
 def _cmd_validate_physics(args) -> int:
     from .validation import cases
 
+    cases.grains_across(cases.CASES[0], args.resolution)  # a bad --resolution stops here, before any run
     for flag, given in (("--resume", args.resume), ("--report-only", args.report_only)):
         if given and args.case != "all":
             raise UserError(f"{flag}: only with `all` (a single case always runs)")
@@ -110,8 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                       "vertical_cut | all")
     physics.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                          help="case parameter (repeatable), e.g. --param depth=0.2 --param rake_deg=60")
-    physics.add_argument("--resolution", choices=("coarse", "default", "fine"), default="default",
-                         help="particle size (diameters across the case's key length)")
+    physics.add_argument("--resolution", default="default", metavar="coarse|default|fine|N",
+                         help="particle size: a named resolution, or N particle diameters across the case's key "
+                              "length (3-64; e.g. 24 for a blade convergence run on a GPU)")
     physics.add_argument("--out", metavar="DIR", help="output folder (default: runs/validate-<case>-<time>)")
     physics.add_argument("--report", metavar="FILE", default="docs/validation.md",
                          help="report written by `all` (plots go beside it in <stem>/)")

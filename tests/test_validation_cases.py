@@ -81,6 +81,28 @@ def test_vertical_cut_default_height_is_below_culmann():
     assert p["height"] == pytest.approx(0.6 * hc)
 
 
+@pytest.mark.parametrize("case", cases.CASES)
+def test_a_numeric_resolution_is_that_many_diameters_across_the_key_length(case):
+    p = cases.parse_params(case, [])
+    for name in cases.RESOLUTIONS:  # the named resolutions are numbers from ACROSS
+        n = cases.ACROSS[case][name]
+        assert cases.build_overrides(case, p, str(n)) == cases.build_overrides(case, p, name)
+    r12 = cases.build_overrides(case, p, "12")[1]["radius"]
+    r24 = cases.build_overrides(case, p, "24")[1]["radius"]
+    assert r12 == pytest.approx(2.0 * r24)  # twice the grains across, half the radius
+    if case == "blade_cut":
+        assert r24 == pytest.approx(p["depth"] / 48.0)
+
+
+@pytest.mark.parametrize("bad", ["2", "65", "1.5", "-6", "finer", ""])
+def test_a_bad_resolution_is_a_one_line_user_error(bad):
+    with pytest.raises(UserError) as exc:
+        cases.build_overrides("blade_cut", cases.parse_params("blade_cut", []), bad)
+    msg = str(exc.value)
+    assert msg.startswith("--resolution: expected coarse, default, fine or a whole number") and "(3-64)" in msg
+    assert "\n" not in msg
+
+
 @pytest.mark.parametrize("case, items, words", [
     ("blade_cut", ["depht=0.2"], "--param depht: unknown parameter of blade_cut"),
     ("blade_cut", ["depth=x"], "--param depth: expected a number"),
@@ -100,8 +122,10 @@ def test_cli_bad_case_and_param_exit_2(capsys):
     assert main(["validate-physics", "nope"]) == 2
     assert main(["validate-physics", "passive_wall", "--param", "height=-1"]) == 2
     assert main(["validate-physics", "all", "--param", "height=1"]) == 2
+    assert main(["validate-physics", "all", "--resolution", "100", "--report-only"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 3 and all(line.startswith("error: ") for line in err)
+    assert len(err) == 4 and all(line.startswith("error: ") for line in err)
+    assert "--resolution" in err[3]
 
 
 def test_runout_length_ends_at_the_first_gap():

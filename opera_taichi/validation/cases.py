@@ -95,6 +95,7 @@ ACROSS = {
     "repose": dict(coarse=12, default=16, fine=24),         # across the poured column
     "vertical_cut": dict(coarse=8, default=16, fine=24),    # across the Culmann height
 }
+ACROSS_RANGE = (3, 64)   # a numeric --resolution: 3 is the coarse blade; 64 across the default blade is ~17 M grains
 REPOSE_COLUMN = 0.4      # m, side and height of the settled column poured through the hopper
 HOPPER_OUTLET = 10.0     # x R: outlet radius (10 particle diameters across: no arching)
 HOPPER_WALL = math.radians(60.0)  # hopper walls from the horizontal (steeper than any repose angle: they empty)
@@ -211,13 +212,23 @@ def _tool_file(mesh, name: str, work_dir) -> str:
     return str(path.resolve())
 
 
+def grains_across(case: str, resolution: str) -> int:
+    """Particle diameters across the case's key length: a named resolution (ACROSS), or a whole number as given,
+    for convergence studies past `fine` (the blade gates need 21-32 across the cut: a GPU job, --arch cuda)."""
+    if resolution in RESOLUTIONS:
+        return ACROSS[case][resolution]
+    text = str(resolution).strip()
+    if not (text.isdigit() and ACROSS_RANGE[0] <= int(text) <= ACROSS_RANGE[1]):
+        raise UserError(f"--resolution: expected {', '.join(RESOLUTIONS)} or a whole number of particle diameters "
+                        f"across the case's key length ({ACROSS_RANGE[0]}-{ACROSS_RANGE[1]}), got {resolution!r}")
+    return int(text)
+
+
 def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | None = None
                     ) -> tuple[list[str], dict]:
     """The `--set` overrides for this case and the geometry the metric needs. Tool meshes a case needs (blade,
     hopper) are written to work_dir (default: the cache)."""
-    if resolution not in RESOLUTIONS:
-        raise UserError(f"--resolution: expected one of {', '.join(RESOLUTIONS)}, got {resolution!r}")
-    n = ACROSS[case][resolution]
+    n = grains_across(case, resolution)
     soil: dict = {}
     geo: dict = {}
     if case == "blade_cut":
