@@ -117,14 +117,17 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    signal smoothed over 1.5 mm, which this report used before, was the top of that noise (3,426 N/m, 1.24 x, from
    the same run that now reads 3,023 N/m, 1.09 x).
    The blade over-strength falls with resolution too: a90 d0.2 w1.0, draft averaged over d to 2d of travel,
-   over the earthmoving equation, at 3 / 4 / 6 (default) / 8 / 10 (fine) grains across d: 2.64 / 2.33 / 1.74 /
-   1.56 / 1.45 x (1,867 / 4,340 / 16,377 / 33,725 / 65,636 grains). The excess goes about as 1/n (n grains across
-   d): a least-squares c + a/n gives c = 0.90, a = 5.3 (residuals below 0.1), so the draft tends to the equation,
-   within about 10%, as the grains shrink. The blade acts as if two grain diameters deeper than its edge: the draft
-   is the equation's at depth d + k D (D the grain diameter) with k = 1.87 / 2.11 / 1.91 / 1.99 / 2.04 at the five
-   resolutions (after the a90 d0.3 cut the bed is loosened to solid fraction 0.34-0.46 in the two diameters below
-   the cut floor, against 0.50-0.56 at that depth ahead of the blade). The 15% gate needs about 21-32 grains across
-   d by these fits (0.5-1 M grains for the d 0.2 m blade, by estimate 5 h a run on 2 CPU cores: a GPU job); soil.md
+   over the earthmoving equation, at 3 / 4 / 6 (default) / 8 / 10 (fine) / 12 grains across d: 2.64 / 2.33 / 1.74
+   / 1.56 / 1.45 / 1.42 x (1,867 / 4,340 / 16,377 / 33,725 / 65,636 / 113,028 grains; the 12-across run, `--resolution
+   12`, took 54 min on a 2-core Zen 5 host, 16 of them settling). The excess goes about as 1/n (n grains across d):
+   a least-squares c + a/n gives c = 0.94, a = 5.2 (residuals below 0.1), and a power law 5.3 n^-1.06 fits the
+   excess as well, so the draft tends to the equation, within about 10%, as the grains shrink. The blade acts as if
+   two grain diameters deeper than its edge: the draft is the equation's at depth d + k D (D the grain diameter)
+   with k = 1.87 / 2.11 / 1.91 / 1.99 / 2.04 / 2.27 at the six resolutions (after the a90 d0.3 cut the bed is
+   loosened to solid fraction 0.34-0.46 in the two diameters below the cut floor, against 0.50-0.56 at that depth
+   ahead of the blade). The 15% gate needs about 24-29 grains across d by these fits: 0.9-1.6 M grains for the
+   d 0.2 m blade, and as the cost goes about as n^4 (grains n^3, steps n), 14-30 h a run on 2 CPU cores: a GPU
+   job (`validate-physics blade_cut --resolution 24 --arch cuda`); soil.md
    asks 8-10 for forces within tens of percent. The default's 6 kept a blade run at 16-27 min on earlier 2-core
    hosts (4-6 min on a 2-core Zen 5 EPYC host; the 10-grain run took 26 min there, settling included). The blade's
    d^2 and w scalings pass at 6. At 6 the over-strength is a plateau, not a hardening: a90 d0.3 w1.5, draft over
@@ -144,7 +147,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    resistance off the tool contacts alone changes little (2.48 / 2.28 against 2.71 / 2.45 x). But the heaps need
    it: it stands in for the grains' shape, and spheres without it heap at about 20 deg. So the blade gates at the
    default resolution need the heaps' angle from another source than rolling resistance (non-spherical grains:
-   clumps of spheres), or 21-32 grains across d.
+   clumps of spheres), or 24-29 grains across d.
    Two cheaper changes were tried in a scratch copy (a90 d0.3 w1.5, 3 grains across d, seeds 0 and 1) and left
    out. Resisting only the rolling part of the relative rotation (no twisting resistance) lowered the draft by
    about 12% (2.36 / 2.24 x against 2.64 / 2.60 x with twisting under its own cap) but flattened the coarse sand
