@@ -94,7 +94,7 @@ def test_a_numeric_resolution_is_that_many_diameters_across_the_key_length(case)
         assert r24 == pytest.approx(p["depth"] / 48.0)
 
 
-@pytest.mark.parametrize("bad", ["2", "65", "1.5", "-6", "finer", ""])
+@pytest.mark.parametrize("bad", ["2", "65", "1.5", "-6", "finer", "", "\u00b2"])
 def test_a_bad_resolution_is_a_one_line_user_error(bad):
     with pytest.raises(UserError) as exc:
         cases.build_overrides("blade_cut", cases.parse_params("blade_cut", []), bad)

@@ -214,11 +214,11 @@ def _tool_file(mesh, name: str, work_dir) -> str:
 
 def grains_across(case: str, resolution: str) -> int:
     """Particle diameters across the case's key length: a named resolution (ACROSS), or a whole number as given,
-    for convergence studies past `fine` (the blade gates need 21-32 across the cut: a GPU job, --arch cuda)."""
+    for convergence studies past `fine` (the blade gates need 24-29 across the cut: a GPU job, --arch cuda)."""
     if resolution in RESOLUTIONS:
         return ACROSS[case][resolution]
     text = str(resolution).strip()
-    if not (text.isdigit() and ACROSS_RANGE[0] <= int(text) <= ACROSS_RANGE[1]):
+    if not (text.isascii() and text.isdigit() and ACROSS_RANGE[0] <= int(text) <= ACROSS_RANGE[1]):
         raise UserError(f"--resolution: expected {', '.join(RESOLUTIONS)} or a whole number of particle diameters "
                         f"across the case's key length ({ACROSS_RANGE[0]}-{ACROSS_RANGE[1]}), got {resolution!r}")
     return int(text)
