@@ -77,7 +77,8 @@ def _cmd_validate_physics(args) -> int:
         rel = metrics["relative_error"]
         print(f"{metrics['case']}: {metrics['metric']} = {metrics['measured']:.4g} (reference "
               f"{metrics['reference']:.4g}{'' if rel is None else f', error {rel:+.1%}'}) "
-              f"{'PASS' if metrics['passed'] else 'FAIL'}; {Path(metrics['run_dir']).parent / 'metrics.json'}")
+              f"{'no gate' if metrics['passed'] is None else 'PASS' if metrics['passed'] else 'FAIL'}; "
+              f"{Path(metrics['run_dir']).parent / 'metrics.json'}")
     return 0
 
 

@@ -50,7 +50,7 @@ def test_shipped_scenes_are_the_default_case():
 
 
 def test_blade_geometry_puts_the_cutting_edge_at_depth_and_rake(tmp_path):
-    p = cases.parse_params("blade_cut", ["depth=0.2", "rake_deg=60", "width=1.0"])
+    p = cases.parse_params("blade_cut", ["depth=0.2", "rake_deg=60", "plane_strain=0", "width=1.0"])
     sets, geo = cases.build_overrides("blade_cut", p, "coarse", work_dir=tmp_path)
     scene = load_scene(cases.scene_file("blade_cut"), sets)
     tool = scene.tools[0]
@@ -72,6 +72,39 @@ def test_blade_geometry_puts_the_cutting_edge_at_depth_and_rake(tmp_path):
     assert np.all(others[:, 2] > -0.2 + 0.01)
     assert mesh.extents[1] == pytest.approx(1.0) and tool.velocity[0] == pytest.approx(0.1)
     assert scene.soil.clear_above == pytest.approx(cases.BLADE_CLEAR_ABOVE * geo["radius"])
+    # a 3-D blade: the pit is wider than the blade by d on each side, so its edges cut free soil
+    assert geo["width"] == 1.0 and scene.soil.bed[0].max[1] == pytest.approx(0.5 + 0.2 + 2 * geo["radius"])
+    assert geo["radius"] == pytest.approx(0.2 / (2 * cases.ACROSS["blade_cut_3d"]["coarse"]))
+
+
+@pytest.mark.parametrize("rake", [90, 45])
+def test_plane_strain_blade_spans_a_slab_between_smooth_walls(tmp_path, rake):
+    """The default blade: the bed and the domain are a slab SLICE_DIAMETERS grains wide, the blade reaches past
+    both side walls (no edge in the soil), and the draft is divided by the slab's width."""
+    p = cases.parse_params("blade_cut", [f"rake_deg={rake}"])
+    assert p["plane_strain"] == 1.0 and p["width"] is None
+    sets, geo = cases.build_overrides("blade_cut", p, "default", work_dir=tmp_path)
+    scene = load_scene(cases.scene_file("blade_cut"), sets)
+    slab = cases.SLICE_DIAMETERS * 2 * geo["radius"]
+    assert geo["width"] == pytest.approx(slab) and geo["radius"] == pytest.approx(0.3 / (2 * cases.ACROSS["blade_cut"]["default"]))
+    bed, domain = scene.soil.bed[0], scene.soil.domain
+    assert (bed.min[1], bed.max[1]) == pytest.approx((-slab / 2, slab / 2))
+    assert (domain.min[1], domain.max[1]) == pytest.approx((-slab / 2, slab / 2))
+    mesh = trimesh.load(scene.tools[0].mesh, force="mesh")
+    assert mesh.bounds[0][1] < -slab / 2 - geo["radius"] and mesh.bounds[1][1] > slab / 2 + geo["radius"]
+    # the draft is per metre of the slab: a wrench of -1000 N in x reads 1000 / slab N/m
+    run = tmp_path / "run"
+    run.mkdir()
+    import json
+    (run / "manifest.json").write_text(json.dumps({"soil": {"bulk": {
+        "density": 1700.0, "friction_angle": math.radians(35.0), "cohesion": 0.0, "tool_friction_angle": 0.0}}}))
+    rows = ["t,tool,fx,fy,fz,tx,ty,tz"] + [f"{i * 0.1},blade,-1000,0,0,0,0,0" for i in range(100)]
+    (run / "tool_wrench.csv").write_text("\n".join(rows) + "\n")
+    m = cases.measure("blade_cut", run, p, geo)
+    assert m["measured"] == pytest.approx(1000.0 / slab) and m["extra"]["width_m"] == pytest.approx(slab)
+    assert "passed" not in m  # gated against the FEE
+    m3 = cases.measure("blade_cut", run, cases.parse_params("blade_cut", ["plane_strain=0"]), dict(geo, width=1.5))
+    assert m3["passed"] is None and m3["measured"] == pytest.approx(1000.0 / 1.5)  # a 3-D blade is shown, not gated
 
 
 def test_vertical_cut_default_height_is_below_culmann():
@@ -108,6 +141,8 @@ def test_a_bad_resolution_is_a_one_line_user_error(bad):
     ("blade_cut", ["depth=x"], "--param depth: expected a number"),
     ("blade_cut", ["rake_deg=120"], "--param rake_deg"),
     ("blade_cut", ["adhesion=-100"], "--param adhesion: expected a number in Pa >= 0"),
+    ("blade_cut", ["width=1.0"], "--param width: only for a 3-D blade (with --param plane_strain=0)"),
+    ("blade_cut", ["plane_strain=0.5"], "--param plane_strain: expected a number 0 or 1 (1, the default"),
     ("repose", ["preset=mud"], "--param preset: expected one of"),
     ("column_collapse", ["aspect_ratio"], "expected NAME=VALUE"),
     ("nope", [], "unknown case 'nope'"),
@@ -157,9 +192,13 @@ def test_report_from_metrics(tmp_path):
                     relative_error=(measured - reference) / reference, passed=passed, gate="g", parameters=params,
                     resolution="coarse", particles=10, wall_time_s=1.0, extra={})
     blade = dict(rake=math.pi / 2, delta=0.0, friction=math.radians(35), density=1700.0, cohesion=0.0)
-    results = [m("blade_cut", "blade_a90_d0.3_w1.5", 2800.0, 2769.3, True, depth=0.3, width=1.5, **blade),
-               m("blade_cut", "blade_a90_d0.2_w1.5", 1200.0, 1230.8, True, depth=0.2, width=1.5, **blade),
-               m("blade_cut", "blade_a90_d0.2_w1.0", 1250.0, 1230.8, True, depth=0.2, width=1.0, **blade),
+    results = [m("blade_cut", "blade_a90_d0.3", 2800.0, 2769.3, True, depth=0.3, width=None, plane_strain=1.0,
+                 **blade),
+               m("blade_cut", "blade_a90_d0.2", 1300.0, 1230.8, True, depth=0.2, width=None, plane_strain=1.0, **blade),
+               m("blade_cut", "blade_3d_a90_d0.2_w1.5", 1200.0, 1230.8, None, depth=0.2, width=1.5, plane_strain=0.0,
+                 **blade),
+               m("blade_cut", "blade_3d_a90_d0.2_w1.0", 1250.0, 1230.8, None, depth=0.2, width=1.0, plane_strain=0.0,
+                 **blade),
                m("column_collapse", "column_a0.5", 0.7, 0.75, True, aspect_ratio=0.5),
                m("column_collapse", "column_a1", 1.4, 1.5, True, aspect_ratio=1.0)]
     path = report.write_report(results, tmp_path / "validation.md", "opera-taichi validate-physics all")
@@ -168,7 +207,9 @@ def test_report_from_metrics(tmp_path):
     assert (tmp_path / "validation" / "runout.png").is_file()
     assert (tmp_path / "validation" / "blade_force_depth.png").is_file()
     gates = {g["label"]: g for g in report.derived_gates(results)}
-    assert gates["blade draft ~ d^2 (d 0.3 vs 0.2)"]["measured"] == pytest.approx(2800 / 1200)
+    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| blade")}
+    assert "| shown |" in rows["blade_3d_a90_d0.2_w1.0"] and "| pass |" in rows["blade_a90_d0.3"]
+    assert gates["blade draft ~ d^2 (d 0.3 vs 0.2)"]["measured"] == pytest.approx(2800 / 1300)  # plane strain
     assert gates["blade draft ~ w (w 1.5 vs 1.0)"]["measured"] == pytest.approx(1200 * 1.5 / (1250 * 1.0))
     assert gates["run-out log-log slope, a <= 1"]["measured"] == pytest.approx(1.0)
 
@@ -231,7 +272,7 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
 def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, monkeypatch):
     import json
 
-    label, case, params = report.gate_set()[4]  # the passive wall
+    label, case, params = next(g for g in report.gate_set() if g[1] == "passive_wall")
     params = {k: str(v) for k, v in params.items()}
     out = tmp_path / "runs"
     sets, _ = cases.build_overrides(case, cases.parse_params(case, params), "coarse", work_dir=out / label)
@@ -266,7 +307,7 @@ def test_a_kept_run_is_measured_again_with_the_current_code(tmp_path):
     measuring code (here a stale peak) is replaced by what this code reads from tool_wrench.csv."""
     import json
 
-    label, case, params = report.gate_set()[4]  # the passive wall
+    label, case, params = next(g for g in report.gate_set() if g[1] == "passive_wall")
     params = {k: str(v) for k, v in params.items()}
     out = tmp_path / label
     sets, geo = cases.build_overrides(case, cases.parse_params(case, params), "coarse", work_dir=out)
