@@ -118,23 +118,33 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    grains slip and re-jam (standard deviation 12% of the thrust at 10 grains across H, 4% at 15): the peak of the
    signal smoothed over 1.5 mm, which this report used before, was the top of that noise (3,426 N/m, 1.24 x, from
    the same run that now reads 3,023 N/m, 1.09 x).
-   The blade over-strength falls with resolution too: a90 d0.2 w1.0, draft averaged over d to 2d of travel,
-   over the earthmoving equation, at 3 / 4 / 6 (default) / 8 / 10 (fine) / 12 grains across d: 2.64 / 2.33 / 1.74
-   / 1.56 / 1.45 / 1.42 x (1,867 / 4,340 / 16,377 / 33,725 / 65,636 / 113,028 grains; the 12-across run, `--resolution
-   12`, took 54 min on a 2-core Zen 5 host, 16 of them settling). The excess goes about as 1/n (n grains across d):
-   a least-squares c + a/n gives c = 0.94, a = 5.2 (residuals below 0.1), and a power law 5.3 n^-1.06 fits the
-   excess as well, so the draft tends to the equation, within about 10%, as the grains shrink. The blade acts as if
-   two grain diameters deeper than its edge: the draft is the equation's at depth d + k D (D the grain diameter)
-   with k = 1.87 / 2.11 / 1.91 / 1.99 / 2.04 / 2.27 at the six resolutions (after the a90 d0.3 cut the bed is
-   loosened to solid fraction 0.34-0.46 in the two diameters below the cut floor, against 0.50-0.56 at that depth
-   ahead of the blade). The 15% gate needs about 24-29 grains across d by these fits: 0.9-1.6 M grains for the
-   d 0.2 m blade, and as the cost goes about as n^4 (grains n^3, steps n), 14-30 h a run on 2 CPU cores: a GPU
-   job (`validate-physics blade_cut --resolution 24 --arch cuda`); soil.md
-   asks 8-10 for forces within tens of percent. The default's 6 kept a blade run at 16-27 min on earlier 2-core
-   hosts (4-6 min on a 2-core Zen 5 EPYC host; the 10-grain run took 26 min there, settling included). The blade's
-   d^2 and w scalings pass at 6. At 6 the over-strength is a plateau, not a hardening: a90 d0.3 w1.5, draft over
-   the equation's in windows of d/4 of travel, 0.85 / 1.49 / 1.64 / 1.62 / 1.69 / 1.70 / 1.81 / 1.78 / 1.85 /
-   1.82 / 1.64 / 1.74 from 0 to 3d.
+   **The blade is gated in plane strain, at 20 grains across d.** The earthmoving equation is per metre of an
+   endless cut. The default blade spans a slab 8 grains wide between the domain's smooth side walls (symmetry
+   planes), so no blade edge is in the soil; `--param plane_strain=0 --param width=W` runs a 3-D blade of width W
+   in a pit wider by d on each side. A 3-D blade's edges push side wedges that add to its draft: at 6 grains
+   across d the draft per width read 1.704 x the equation's at w 1.5 m and 1.758 x at w 1.0 m (d 0.2 m), so
+   F/w = f + 2e/w gives f = 1.60 x for an endless blade, and the slab read 1.57 / 1.59 x (seeds 0 / 1; a slab 16
+   grains wide 1.42 x) at the same 6 across.
+   The excess over the equation falls with resolution in both (a90 d0.2, draft over d to 2d of travel):
+
+   | grains across d | 3 | 4 | 6 | 8 | 10 | 12 |
+   |---|---|---|---|---|---|---|
+   | 3-D blade, w 1.0 m | 2.64 | 2.33 | 1.74 | 1.56 | 1.45 | 1.42 |
+   | plane strain, slab 8 (16) grains wide | | | 1.57-1.59 (1.42) | | | 1.19 (1.25) |
+
+   The 3-D blade's excess goes about as 1/n (c + a/n: c = 0.94, a = 5.2) and would need 24-29 grains across d,
+   0.9-1.6 M grains and 14-30 h a run on 2 CPU cores, because its grains grow as n^3. The slab's grow as n^2: at
+   16 across d, a90 d0.3 (over d to 3d, the gate's window) read 1.146 x with 19,196 grains left at the end (24,090
+   poured; 13 min on 2 Zen 5 cores, 3 of them settling) and a60 delta20 d0.3 1.224 x (its vertical force on the
+   soil +419 against the equation's +474 N/m; the 3-D blade at 6 across had it at -105). Both passed, at the
+   edge of their gates, so the default is 20 across (about 25 min a run on 2 cores, 9.6 M particle-steps/s).
+   The excess is a grain-scale layer under the edge: the blade acts as if k grain diameters deeper than its edge
+   (draft = the equation's at depth d + k D, k = 1.9-2.3 across the 3-D series; after the a90 d0.3 cut the bed is
+   loosened to solid fraction 0.34-0.46 in the two diameters below the cut floor, against 0.50-0.56 at that
+   depth ahead of the blade), so it thins in metres only as the grains shrink. At 6 across it is a plateau, not a
+   hardening (3-D a90 d0.3 w1.5, draft over the equation's in windows of d/4 of travel from 0 to 3d: 0.85, 1.49,
+   1.64, 1.62, 1.69, 1.70, 1.81, 1.78, 1.85, 1.82, 1.64, 1.74). soil.md asks 8-10 grains across for forces
+   within tens of percent; the coarse CI blade has 6.
    The over-strength is not the spoil, the far pit wall or grain rattling (coarse a90 d0.3 w1.5, 3 grains across
    d: 2.85 x with the spoil cleared R/2 above the surface, 2.43 x cleared at the surface; 2.46 x with the pit 8 d
    longer; with it 4 d longer, restitution 0.5 read 2.71 and 2.45 x and restitution 0.1 2.33 and 2.46 x on two
@@ -147,9 +157,9 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    seeds each), and without it the draft no longer hardens with travel. Part of that is a weaker material (the wall
    at 5 grains across H reads 0.79 x at 0.2 H without it, above), so 0.99 x is not a calibration. Taking the rolling
    resistance off the tool contacts alone changes little (2.48 / 2.28 against 2.71 / 2.45 x). But the heaps need
-   it: it stands in for the grains' shape, and spheres without it heap at about 20 deg. So the blade gates at the
-   default resolution need the heaps' angle from another source than rolling resistance (non-spherical grains:
-   clumps of spheres), or 24-29 grains across d.
+   it: it stands in for the grains' shape, and spheres without it heap at about 20 deg. So the blade gates take the
+   resolution (20 grains across d in plane strain) rather than a lower rolling resistance; the heaps' angle from
+   grain shape (clumps of spheres) would let a coarser blade pass.
    Two cheaper changes were tried in a scratch copy (a90 d0.3 w1.5, 3 grains across d, seeds 0 and 1) and left
    out. Resisting only the rolling part of the relative rotation (no twisting resistance) lowered the draft by
    about 12% (2.36 / 2.24 x against 2.64 / 2.60 x with twisting under its own cap) but flattened the coarse sand
@@ -173,8 +183,9 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    heaps at the default resolution: sand (33 deg) stands at 32.7 deg with 0.3; glass beads (22 deg) at 24.2 deg
    with 0.147 (exponent 1.5), 21.5 with 0.130 and 22.6 with 0.131 (exponent 1.75, the default).
 3. **Friction angle** `friction_angle_deg` (particle friction tan(phi)): check with the passive wall and the blade,
-   `validate-physics passive_wall --param height=0.3` and `validate-physics blade_cut --param depth=0.3`, which
-   compare with Rankine and the earthmoving equation at the same phi. The blade has a sharpened edge and the
+   `validate-physics passive_wall --param height=0.3` and `validate-physics blade_cut --param depth=0.3` (plane
+   strain, 20 grains across d: about 25 min on 2 cores; `--resolution 12` takes about 6 min and reads about 1.2 x),
+   which compare with Rankine and the earthmoving equation at the same phi. The blade has a sharpened edge and the
    spoil rising above the surface is cleared (`soil.clear_above`), so the oracle is the FEE without surcharge.
 4. **Cohesion** `cohesion` (Pa; Rumpf's bond force, see soil.py): check with the vertical cut at 0.6 and 2 x the
    Culmann height, `validate-physics vertical_cut --param preset=NAME --param height=H`; raise or lower the
@@ -182,11 +193,11 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
 5. **Adhesion** `adhesion` (soil-tool c_a, Pa; an attraction and as much tangential grip per tool contact, see
    soil.py): check with the blade, `validate-physics blade_cut --param adhesion=CA` against the same cut without
    it; the increments of draft and vertical force compare with the earthmoving equation's c_a terms. Sand, d 0.15 m,
-   3 grains across d, two settled beds: c_a 4 kPa raised the draft by 0.55 and 0.81 x the FEE's c_a d N_ca term and
-   the downward shear on the soil by 0.29 and 0.60 x c_a d; at 2 kPa the draft by 0.35 and 0.47 x. At 5 grains
-   across (one bed, 2 kPa): 0.94 and 0.62 x; at the default 6 (2 kPa, `--resolution default --param depth=0.15
-   --param width=0.75 --param speed=0.3`): 0.95 x (+445 against +470 N/m) and 0.54 x (-161 against -300 N/m). The
-   face carries its shear through a few grains and gains with resolution, as the blade's draft does.
+   0.3 m/s, in plane strain at 6 grains across d (the CI test), seeds 0 and 1: c_a 4 kPa raised the draft by 0.84
+   and 0.60 x the FEE's c_a d N_ca term and the downward shear on the soil by 0.82 and 0.59 x c_a d. The 3-D
+   blade (w 0.75 m) at 3 grains across d, two settled beds: 0.55 and 0.81 x, and 0.29 and 0.60 x; at 2 kPa the
+   draft by 0.35 and 0.47 x; at 6 across (2 kPa) 0.95 x (+445 against +470 N/m) and 0.54 x (-161 against -300
+   N/m). The face carries its shear through a few grains and gains with resolution, as the blade's draft does.
 6. Rerun `opera-taichi validate-physics all` and keep this report with the soil's parameters.
 """
 
