@@ -214,6 +214,16 @@ def test_report_from_metrics(tmp_path):
     assert gates["run-out log-log slope, a <= 1"]["measured"] == pytest.approx(1.0)
 
 
+def test_the_ratio_gates_find_their_runs_in_the_gate_set():
+    # derived_gates looks runs up by label: a label written differently in gate_set would drop a gate silently
+    results = []
+    for label, case, params in report.gate_set():
+        p = cases.parse_params(case, {k: str(v) for k, v in params.items()})
+        results.append(dict(label=label, case=case, measured=1.0, parameters=cases._si_params(p)))
+    assert {g["label"] for g in report.derived_gates(results)} == {
+        "blade draft ~ d^2 (d 0.3 vs 0.2)", "blade draft ~ w (w 1.5 vs 1.0)", "run-out log-log slope, a <= 1"}
+
+
 def _finished_manifest(case: str, sets: list[str], **soil) -> dict:
     """The manifest of a finished run of these overrides, as run_scene writes it (status, soil micro, version)."""
     from opera_taichi.dem_soil import SOLVER_VERSION

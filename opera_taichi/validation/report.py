@@ -24,8 +24,8 @@ def gate_set() -> list[tuple[str, str, dict]]:
         ("blade_a60_delta20_d0.3", "blade_cut", {**SAND, "depth": 0.3, "rake_deg": 60.0, "delta_deg": 20.0}),
         ("blade_a90_d0.2", "blade_cut", {**SAND, "depth": 0.2, "rake_deg": 90.0, "delta_deg": 0.0}),
         # 3-D blades of two widths (w >= 5 d), edges free: the w scaling
-        *[(f"blade_3d_a90_d0.2_w{w:g}", "blade_cut", {**SAND, "depth": 0.2, "plane_strain": 0, "width": w,
-                                                       "rake_deg": 90.0, "delta_deg": 0.0}) for w in (1.5, 1.0)],
+        *[(f"blade_3d_a90_d0.2_w{w:.1f}", "blade_cut", {**SAND, "depth": 0.2, "plane_strain": 0, "width": w,
+                                                         "rake_deg": 90.0, "delta_deg": 0.0}) for w in (1.5, 1.0)],
         ("passive_wall_H0.3", "passive_wall", {**SAND, "height": 0.3}),
         *[(f"column_a{a:g}", "column_collapse", {"aspect_ratio": a, "preset": "sand"}) for a in (0.5, 1.0, 2.0)],
         ("repose_sand", "repose", {"preset": "sand"}),
