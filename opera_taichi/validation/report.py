@@ -251,6 +251,14 @@ def write_report(results: list[dict], report_path: Path, command: str, not_run: 
                      f"{r['resolution']} | {r.get('particles', '-')} | {r['wall_time_s']:.0f} |")
     for label in not_run:
         lines.append(f"| {label} | - | not run | - | - | not run | - | - | - |")
+    from .cases import ACROSS
+
+    named = [res for res in resolutions if res in ACROSS["blade_cut"]]
+    if any(r["case"] == "blade_cut" for r in results) and named:
+        lines += ["", "Blade rows: the plane-strain blade (a slab 8 grains wide between smooth symmetry walls) at "
+                      + ", ".join(f"{ACROSS['blade_cut'][res]} ({res})" for res in named)
+                      + " grains across the cut; the 3-D blades (edges free, shown and gated only through the w ratio) "
+                      "at " + ", ".join(f"{ACROSS['blade_cut_3d'][res]} ({res})" for res in named) + "."]
     if not_run:
         lines += ["", f"{len(not_run)} of the gates have no finished run yet: rerun the command above with `--resume` "
                       "to run only those."]
