@@ -237,7 +237,7 @@ def resolution_key(case: str, p: dict | None = None) -> str:
 
 def grains_across(case: str, resolution: str) -> int:
     """Particle diameters across the case's key length: a named resolution (ACROSS), or a whole number as given,
-    for convergence studies past `fine` (the blade gates need 24-29 across the cut: a GPU job, --arch cuda)."""
+    for convergence studies past `fine` (e.g. the plane-strain blade at 32 across the cut)."""
     if resolution in RESOLUTIONS:
         return ACROSS[case][resolution]
     text = str(resolution).strip()
