@@ -11,12 +11,18 @@ _started: str | None = None
 def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> str:
     """Start Taichi once per process on `arch` (cpu, cuda or auto). Returns the backend in use.
 
-    Taichi can only run on one backend per process; a second call with a different arch re-initialises it
-    (all fields are lost), so the simulation calls this once, before it allocates any field.
+    Taichi runs one backend per process and a second ti.init would free every array of every simulation in it,
+    so a later call on the same backend (or `auto`) returns at once, and one asking for another backend is refused.
     """
     global _started
     if arch not in ("cpu", "cuda", "auto"):
         raise UserError(f"--arch: expected cpu, cuda or auto, got {arch!r}")
+    if _started is not None and not debug and default_fp is None:
+        wanted = {"cpu": ("x64", "arm64"), "cuda": ("cuda",)}.get(arch)
+        if wanted is None or _started in wanted:
+            return _started
+        raise UserError(f"--arch {arch}: Taichi already runs on {_started} in this process (one backend per "
+                        f"process); use --arch {'cuda' if _started == 'cuda' else 'cpu'} or another process")
     kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0)
     if default_fp is not None:
         kwargs["default_fp"] = default_fp

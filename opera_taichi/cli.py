@@ -6,7 +6,6 @@ Exit codes: 0 done, 1 a bug (traceback), 2 bad input (one line), 3 the simulatio
 from __future__ import annotations
 
 import argparse
-import importlib
 import signal
 import sys
 import threading
@@ -15,40 +14,44 @@ from pathlib import Path
 
 from . import __version__
 from .errors import DivergenceError, Terminated, UserError
-from .scene import load_scene, resolve_out_dir
+from .scene import load_scene
 
 
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-def _simulation_module(required: bool):
-    """The simulation module, imported only when needed (it pulls in Taichi and PyBullet)."""
-    try:
-        return importlib.import_module("opera_taichi.simulation")
-    except ModuleNotFoundError as exc:
-        if not required and exc.name == "opera_taichi.simulation":
-            return None
-        raise
-
-
 def _cmd_validate(args) -> int:
-    scene = load_scene(args.scene, args.set)
-    simulation = _simulation_module(required=False)
-    if simulation is not None and hasattr(simulation, "check_scene"):
-        simulation.check_scene(scene)
+    from . import model
+
+    model.check_scene(load_scene(args.scene, args.set))
     print(f"{args.scene}: ok")
     return 0
 
 
 def _cmd_run(args) -> int:
-    scene = load_scene(args.scene, args.set)
-    if args.arch is not None:
-        scene.sim.arch = args.arch
-    out_dir = resolve_out_dir(scene, args.out)
-    scene.output.dir = out_dir  # so the manifest's resolved scene names the folder actually written
-    simulation = _simulation_module(required=True)
-    result = simulation.run_scene(scene, out_dir=out_dir, arch=scene.sim.arch, quiet=args.quiet)
+    from . import runner
+
+    if args.checkpoint_every is not None and not (args.checkpoint_every > 0):
+        raise UserError(f"--checkpoint-every: expected a positive number of simulated seconds, got "
+                        f"{args.checkpoint_every:g}")
+    if args.resume is not None:
+        if args.scene is not None or args.set or args.out is not None or args.overwrite:
+            raise UserError("--resume RUN_DIR: give no SCENE, --set, --out or --overwrite (the run folder holds its "
+                            "scene)")
+        scene, status, ckpt = runner.resume_scene(Path(args.resume))
+        if not args.quiet:
+            print(f"resuming {args.resume} (status {status}) from {ckpt.name}", file=sys.stderr)
+        result = runner.run_scene(scene, out_dir=Path(args.resume), arch=args.arch or scene.sim.arch,
+                                  quiet=args.quiet, checkpoint_every=args.checkpoint_every, resume=True)
+    else:
+        if args.scene is None:
+            raise UserError("run: a SCENE.yaml is required (or --resume RUN_DIR)")
+        scene = load_scene(args.scene, args.set)
+        if args.arch is not None:
+            scene.sim.arch = args.arch
+        result = runner.run_scene(scene, out_dir=args.out, arch=scene.sim.arch, quiet=args.quiet,
+                                  checkpoint_every=args.checkpoint_every, overwrite=args.overwrite)
     if not args.quiet:
         print(result.out_dir)
     return 0
@@ -66,10 +69,14 @@ def _cmd_validate_physics(args) -> int:
             raise UserError("--param: not allowed with `all` (it runs the fixed gate set)")
         from .validation import report
 
-        path = report.run_all(resolution=args.resolution, out_dir=args.out, report_path=args.report,
-                              arch=args.arch, quiet=args.quiet, resume=args.resume, report_only=args.report_only)
+        path, failed = report.run_all(resolution=args.resolution, out_dir=args.out, report_path=args.report,
+                                      arch=args.arch, quiet=args.quiet, resume=args.resume,
+                                      report_only=args.report_only, with_failures=True)
         if not args.quiet:
             print(path)
+        if failed:
+            print(f"FAIL: {len(failed)} gate(s) failed: {', '.join(failed)} (see {path})", file=sys.stderr)
+            return 1
         return 0
     metrics = cases.run_case(args.case, args.param, resolution=args.resolution, out_dir=args.out, arch=args.arch,
                              quiet=args.quiet)
@@ -79,7 +86,10 @@ def _cmd_validate_physics(args) -> int:
               f"{metrics['reference']:.4g}{'' if rel is None else f', error {rel:+.1%}'}) "
               f"{'no gate' if metrics['passed'] is None else 'PASS' if metrics['passed'] else 'FAIL'}; "
               f"{Path(metrics['run_dir']).parent / 'metrics.json'}")
-    return 0
+    coarse = cases.coarser_than_gate(args.case, args.param, args.resolution)
+    if coarse and not args.quiet:
+        print(f"note: {coarse}", file=sys.stderr)
+    return 1 if metrics["passed"] is False else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -88,18 +98,24 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"opera-taichi {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    def scene_command(name: str, help_text: str):
+    def scene_command(name: str, help_text: str, optional: bool = False):
         sub = commands.add_parser(name, help=help_text, description=help_text)
-        sub.add_argument("scene", metavar="SCENE.yaml", help="scene file")
+        sub.add_argument("scene", metavar="SCENE.yaml", help="scene file", nargs="?" if optional else None)
         sub.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
                          help="override a scene key, value read as YAML (repeatable), "
                               "e.g. --set sim.duration=5 --set soil.bed.0.max.2=-0.5")
         return sub
 
-    run = scene_command("run", "run a scene and write a run folder")
+    run = scene_command("run", "run a scene and write a run folder", optional=True)
     run.add_argument("--out", metavar="DIR", help="run folder (default: output.dir, else runs/<name>-<time>)")
     run.add_argument("--arch", choices=("cpu", "cuda", "auto"), help="Taichi backend (overrides sim.arch)")
     run.add_argument("--quiet", action="store_true", help="no progress bar, no final path")
+    run.add_argument("--checkpoint-every", type=float, metavar="SECONDS",
+                     help="write a checkpoint into RUN_DIR/checkpoints every SECONDS of simulated time")
+    run.add_argument("--overwrite", action="store_true",
+                     help="with --out at a folder that holds a run: empty it and run there")
+    run.add_argument("--resume", metavar="RUN_DIR",
+                     help="continue a run that was killed or interrupted from its newest checkpoint")
     run.set_defaults(handler=_cmd_run)
     validate = scene_command("validate", "check a scene (files, keys, joints) without running it")
     validate.set_defaults(handler=_cmd_validate)

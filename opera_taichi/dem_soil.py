@@ -90,6 +90,23 @@ def _check_beds(beds, lo, hi, r_max) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux MemAvailable), None where it cannot be read."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import os
+
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
 _GRAPH: dict = {}
 
 
@@ -128,12 +145,16 @@ _STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "pair_
 class DemSoil:
     """Cohesive DEM soil in a domain with a ground plane, pits (beds) and kinematic tools."""
 
+    name = "dem"
+    version = SOLVER_VERSION
     solver_version = SOLVER_VERSION  # recorded in each run's manifest: results of another version are not reused
 
     def __init__(self, micro: SoilMicro, *, domain_min, domain_max, beds: list[tuple[tuple, tuple]],
                  seed: int = 0, dt: float | None = None, max_speed: float = 30.0, settle_time: float = 1.0,
-                 use_cache: bool = True, gravity=(0.0, 0.0, -GRAVITY), skin: float | None = None):
+                 use_cache: bool = True, gravity=(0.0, 0.0, -GRAVITY), skin: float | None = None,
+                 on_settle=None):
         self.micro = micro
+        self._on_settle = on_settle
         self.r_max = micro.radius * (1.0 + micro.polydispersity)
         self.domain_min, self.domain_max = _check_domain(domain_min, domain_max)
         self.beds = _check_beds(beds, self.domain_min, self.domain_max, self.r_max)
@@ -169,6 +190,120 @@ class DemSoil:
         self._allocate(0)
         if self.beds:
             self._build_beds(settle_time)
+
+    # ------------------------------------------------------------------------------------------- solver protocol
+    @classmethod
+    def map_parameters(cls, soil_cfg):
+        """(SoilBulk, SoilMicro) of a scene's soil section: the preset with its overrides and the bulk-to-micro
+        mapping (soil.py) for the deepest bed."""
+        from .soil import bulk_to_micro, resolve_soil
+
+        bulk = resolve_soil(soil_cfg.preset, dict(soil_cfg.overrides or {}))
+        bed_depth = max((-float(b.min[2]) for b in soil_cfg.bed), default=1.0)
+        return bulk, bulk_to_micro(bulk, bed_depth=max(bed_depth, 4 * bulk.radius))
+
+    @classmethod
+    def from_model(cls, soil, *, build_beds: bool = True, on_settle=None) -> "DemSoil":
+        """The soil of a Model's SoilModel: beds poured and settled (or read from the cache), shifted and cleared
+        as the scene says. build_beds=False leaves it empty, for a state that is about to be set.
+        on_settle(simulated_s, of_at_most_s) is called as a bed settles (progress)."""
+        self = cls(soil.params, domain_min=soil.domain_min, domain_max=soil.domain_max,
+                   beds=[b for b in soil.beds] if build_beds else [], seed=soil.seed, dt=soil.dt,
+                   max_speed=soil.max_speed, settle_time=soil.settle_time, on_settle=on_settle)
+        if not build_beds:  # the kernels still need the pits as static geometry
+            self.beds = _check_beds(list(soil.beds), self.domain_min, self.domain_max, self.r_max)
+            self._prm.from_numpy(self._parameters())
+        shift = np.asarray(soil.bed_shift, float)
+        if build_beds and np.any(shift != 0.0):  # a settled block released above the ground (the pits stay, empty)
+            parts = self.particles()
+            self.set_particles(parts["positions"] + shift, radii=parts["radii"])
+        if soil.clear_above is not None:
+            self.clear_above(float(soil.clear_above))
+        return self
+
+    # bytes per particle: the arrays of _allocate (both halves of the double buffers, ~0.8 kB) and ~8 neighbour
+    # entries of ~84 B (1.45 kB), plus the host copies made while a bed settles
+    BYTES_PER_PARTICLE = 2048
+
+    @classmethod
+    def check_model(cls, soil) -> dict:
+        """What would fail when the soil is built, found before: beds too small for the grains, a domain too large
+        for the cell hash, more particles than memory holds. Raises UserError naming the scene key; returns
+        {'particles': estimated count, 'memory_bytes': estimated need}."""
+        m = soil.params
+        r_max = m.radius * (1.0 + m.polydispersity)
+        lo, hi = np.asarray(soil.domain_min, float), np.asarray(soil.domain_max, float)
+        for i, (b_min, b_max) in enumerate(soil.beds):
+            side = float(np.min(np.asarray(b_max) - np.asarray(b_min)))
+            if side < 4.0 * r_max:
+                largest = side / (4.0 * (1.0 + m.polydispersity))
+                raise UserError(f"soil.overrides.radius: {m.radius:g} m grains do not fit soil.bed.{i} (its "
+                                f"smallest side, {side:g} m, must hold two grains of up to {r_max:g} m radius); the "
+                                f"largest radius that fits is {math.floor(largest * 1e4) / 1e4:g} m")
+        cell = 2.0 * r_max + m.cohesion_range + SKIN_FRACTION * m.radius
+        cells = float(np.max((hi - lo) / cell))
+        if cells > dem.CELL_LIMIT:
+            raise UserError(f"soil.domain: {cells:.3g} neighbour cells along one axis at {m.radius:g} m grains, at "
+                            f"most {dem.CELL_LIMIT}; shrink the domain or use larger grains")
+        v_mean = 4.0 / 3.0 * math.pi * m.radius ** 3 * (1.0 + m.polydispersity ** 2)
+        volume = sum(float(np.prod(np.asarray(b) - np.asarray(a))) for a, b in soil.beds)
+        particles = int(0.66 * volume / v_mean)  # the pour lattice (_pour_lattice) before trimming
+        need = particles * cls.BYTES_PER_PARTICLE
+        available = _available_memory()
+        if available is not None and need > 0.8 * available:
+            fits = m.radius * (need / (0.8 * available)) ** (1.0 / 3.0)
+            raise UserError(f"soil.overrides.radius: {m.radius:g} m grains make about {particles:,} particles, "
+                            f"which need about {need / 2**30:.1f} GiB; {available / 2**30:.1f} GiB of memory is "
+                            f"available; the smallest radius that fits is about {math.ceil(fits * 1e4) / 1e4:g} m")
+        return {"particles": particles, "memory_bytes": need}
+
+    def describe(self) -> dict:
+        """The manifest's soil block: solver, parameters, the settled bed's packing."""
+        packing = self.bed_packing
+        return {"solver": self.name, "solver_version": self.version, "micro": asdict(self.micro),
+                "bed_packing": packing, "soil_dt": self.dt,
+                "solid_density_effective": self.micro.bulk_density / packing if packing else None}
+
+    _EXACT = ("kin", "prop", "flags", "x_ref", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_off", "rev_pos",
+              "stat", "prm")
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """Every array and counter the next substeps read, copied out: with set_state, a soil goes on bit for bit
+        (the particle order, the neighbour lists with their springs and the Verlet reference positions included)."""
+        n, e = self._n, self._entries
+        size = dict(nbr_off=n + 1, rev_off=n + 1, nbr_j=e, nbr_h=e, rev_pos=e, stat=None, prm=None)
+        out = {}
+        for name in self._EXACT:
+            arr = getattr(self, "_" + name).to_numpy()
+            out[name] = arr if size.get(name, n) is None else arr[:size.get(name, n)].copy()
+        out["tools_host"] = self._tools_host.copy()
+        out["counters"] = np.array([n, self.n_act, e], dtype=np.int64)  # (rebuilds: a diagnostic, not state)
+        out["time"] = np.array(self.time, dtype=np.float64)
+        out["bed_packing"] = np.array(np.nan if self.bed_packing is None else self.bed_packing)
+        return out
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        n, n_act, e = (int(v) for v in state["counters"][:3])
+        if state["tools_host"].shape != self._tools_host.shape or len(state["prm"]) != dem.N_PRM:
+            raise ValueError("the soil state was written by another layout of the DEM solver")
+        self._allocate(n)
+        if e > self._nbr_j.shape[0]:
+            self._allocate_neighbors(e)
+        for name in self._EXACT:
+            target = getattr(self, "_" + name)
+            value = np.asarray(state[name])
+            if value.shape == tuple(target.shape) + tuple(getattr(target, "element_shape", ()) or ()):
+                target.from_numpy(value)
+                continue
+            full = target.to_numpy()
+            full[:len(value)] = value
+            target.from_numpy(full)
+        self.n_act, self._entries = n_act, e
+        self.time = float(state["time"])
+        packing = float(state["bed_packing"])
+        self.bed_packing = None if np.isnan(packing) else packing
+        self._tools_host[:] = state["tools_host"]
+        self._tools_dirty = True
 
     # ------------------------------------------------------------------------------------------- set-up
     def _parameters(self) -> np.ndarray:
@@ -363,6 +498,9 @@ class DemSoil:
         """Let the poured lattice fall and come to rest, trim it level with the bed tops, rest again."""
         fall = max(float(np.max(self.particles()["positions"][:, 2])) - min(b[0][2] for b in self.beds), 0.0)
         t_fall = math.sqrt(2.0 * fall / GRAVITY) + 0.05
+        self._settled_for = 0.0  # simulated settling so far, of at most _settle_budget (progress only)
+        self._settle_budget = max(0.6 * settle_time, 2.0 * t_fall) + max(0.2 * settle_time, 1e-3) + \
+            max(0.5 * settle_time, 1e-3) + max(0.3 * settle_time, 1e-3)
         quiet = 0.02 * math.sqrt(GRAVITY * self.micro.radius)  # max speed considered at rest
         # pour with the soil's friction and rolling resistance (POUR_FRICTIONLESS) but without cohesion and with
         # smooth pit walls (a rough tall column would hang on them); the pit walls reach up meanwhile, so the
@@ -401,6 +539,9 @@ class DemSoil:
             for _ in range(chunk):
                 self._substep(self.dt, damping)
             elapsed += chunk * self.dt
+            if self._on_settle is not None:
+                self._settled_for += chunk * self.dt
+                self._on_settle(self._settled_for, self._settle_budget)
             if elapsed >= at_least and self._totals()[5] < quiet:
                 break
 
@@ -659,10 +800,11 @@ class DemSoil:
             ground[inside] = b_min[2]
         return ground
 
-    def heightmap(self, x_axis: np.ndarray, y_axis: np.ndarray) -> np.ndarray:
+    def heightmap(self, x_axis: np.ndarray, y_axis: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
         """Terrain height on the grid (x_axis, y_axis uniformly spaced nodes): the soil surface as a ball of the
         grain radius rolling over the grains traces it (each grain's own top z + r right above it, narrow gaps
-        between grains bridged), or the static ground where no grain is within two radii of the node."""
+        between grains bridged), or the static ground where no grain is within two radii of the node.
+        exclude: a mask over particles() of grains to leave out (e.g. those a tool carries)."""
         x_axis = np.asarray(x_axis, dtype=np.float64).ravel()
         y_axis = np.asarray(y_axis, dtype=np.float64).ravel()
         spacing = []
@@ -676,7 +818,14 @@ class DemSoil:
         height = ti.ndarray(ti.f64, (len(x_axis), len(y_axis)))
         height.fill(-np.inf)
         if self.n_act:
-            dem.surface_height(self.n_act, self._kin, self._prop, self._flags, height, x_axis[0], spacing[0],
+            flags = self._flags
+            if exclude is not None and np.any(exclude):
+                host = flags.to_numpy()
+                active = np.nonzero(host[:self.n_act] == 1)[0]
+                host[active[np.asarray(exclude, bool)]] = 0
+                flags = ti.ndarray(ti.i32, host.shape[0])
+                flags.from_numpy(host)
+            dem.surface_height(self.n_act, self._kin, self._prop, flags, height, x_axis[0], spacing[0],
                                y_axis[0], spacing[1])
         z = height.to_numpy()
         return np.where(np.isfinite(z), z, self.static_ground(x_axis, y_axis))

@@ -1,7 +1,8 @@
-"""The excavator as a PyBullet articulated body (DIRECT mode) with hydraulic-like joint actuators.
+"""The excavator as a PyBullet articulated body in a RigidWorld, with hydraulic-like joint actuators.
 
 Each actuated joint follows its position target through a speed command
     v_cmd = clip(gain * (q_target - q), -max_speed, max_speed)
+(or, in velocity mode, v_cmd = clip(qd_target, -max_speed, max_speed))
 applied as a velocity motor that can exert at most max_torque: an overloaded joint stalls or is pushed
 back, it never teleports, and it never runs faster than its speed limit. Non-actuated movable joints
 (OPERA's bucket_end_joint) are welded. Without a fixed base the machine stands on a ground plane on three
@@ -10,6 +11,7 @@ driven wheels per side (skid steer), which stand in for the tracks.
 from __future__ import annotations
 
 import hashlib
+import math
 
 import numpy as np
 from lxml import etree
@@ -22,7 +24,6 @@ with quiet_c_output():  # pybullet's C code prints its build time on import; kee
 from .errors import UserError
 from .machine_description import MOVABLE, MachineDescription, atomic_write
 
-SOLVER_ITERATIONS = 150     # a 12 t machine with 50 kg wheels and 0.001 kg frame links needs more than 50
 
 
 def _fmt(values) -> str:
@@ -31,25 +32,26 @@ def _fmt(values) -> str:
 
 class BulletMachine:
     def __init__(self, desc: MachineDescription, *, dt: float = 1e-3, base_xyz=(0, 0, 0), base_yaw=0.0,
-                 fixed_base=True, initial_q: dict[str, float] | None = None, gravity=9.81):
+                 fixed_base=True, initial_q: dict[str, float] | None = None, gravity=9.81, world=None,
+                 name: str | None = None, warn=None):
+        from .rigid import RigidWorld
+
         self.desc = desc
-        self.dt = float(dt)
+        self.name = name or desc.name
         self.fixed_base = bool(fixed_base)
         self.joint_names: list[str] = list(desc.actuated_joints)
         if not self.fixed_base and not desc.tracks:
             raise UserError(f"machine {desc.name}: a free base needs a 'tracks' section in its machine config")
         initial_q = dict(initial_q or {})
-        for name in initial_q:
-            if name not in self.joint_names:
-                raise UserError(f"initial joint angles: unknown joint {name!r} (actuated: {', '.join(self.joint_names)})")
-
-        with quiet_c_output():
-            self.client = pb.connect(pb.DIRECT)
-        c = self.client
-        pb.setGravity(0, 0, -gravity, physicsClientId=c)
-        pb.setPhysicsEngineParameter(fixedTimeStep=self.dt, numSubSteps=0, numSolverIterations=SOLVER_ITERATIONS,
-                                     solverResidualThreshold=1e-9, deterministicOverlappingPairs=1,
-                                     physicsClientId=c)
+        for name_ in initial_q:
+            if name_ not in self.joint_names:
+                raise UserError(f"initial joint angles: unknown joint {name_!r} "
+                                f"(actuated: {', '.join(self.joint_names)})")
+        self._own_world = world is None
+        self.world = RigidWorld(dt=dt, gravity=gravity) if world is None else world
+        self.dt = self.world.dt
+        self._warn = warn
+        c = self.client = self.world.client
         urdf = self._write_bullet_variant()
         self.body = pb.loadURDF(str(urdf), basePosition=list(base_xyz),
                                 baseOrientation=pb.getQuaternionFromEuler([0, 0, base_yaw]),
@@ -59,30 +61,45 @@ class BulletMachine:
         self.base_link = pb.getBodyInfo(self.body, physicsClientId=c)[0].decode()
         self.link_index = {self.base_link: -1}
         joint_index = {}
+        self._other_indices = []      # movable joints that are not actuated (track wheels): state, not commands
         for i in range(pb.getNumJoints(self.body, physicsClientId=c)):
             info = pb.getJointInfo(self.body, i, physicsClientId=c)
             joint_index[info[1].decode()] = i
             self.link_index[info[12].decode()] = i
+            if info[2] != pb.JOINT_FIXED and info[1].decode() not in self.joint_names:
+                self._other_indices.append(i)
             # bodies lose no energy to artificial damping: the hydraulics and the soil do the damping
             pb.changeDynamics(self.body, i, linearDamping=0.0, angularDamping=0.0, jointDamping=0.0,
                               physicsClientId=c)
         pb.changeDynamics(self.body, -1, linearDamping=0.0, angularDamping=0.0, physicsClientId=c)
-        self._indices = [joint_index[name] for name in self.joint_names]
+        self._indices = [joint_index[name_] for name_ in self.joint_names]
         self._max_speed = np.array([desc.actuators[n].max_speed for n in self.joint_names])
         self._max_torque = np.array([desc.actuators[n].max_torque for n in self.joint_names])
         self._gain = np.array([desc.actuators[n].gain for n in self.joint_names])
         self._lower = np.array([desc.joint_limits[n][0] for n in self.joint_names])
         self._upper = np.array([desc.joint_limits[n][1] for n in self.joint_names])
+        self._column = {n: i for i, n in enumerate(self.joint_names)}
 
-        for name, index in zip(self.joint_names, self._indices):
-            pb.resetJointState(self.body, index, float(initial_q.get(name, 0.0)), 0.0, physicsClientId=c)
-        self._targets = np.array([float(initial_q.get(n, 0.0)) for n in self.joint_names])
+        for name_, index in zip(self.joint_names, self._indices):
+            pb.resetJointState(self.body, index, float(initial_q.get(name_, 0.0)), 0.0, physicsClientId=c)
+        n = len(self.joint_names)
+        self._targets = np.array([float(initial_q.get(j, 0.0)) for j in self.joint_names])
+        self._qd_targets = np.zeros(n)
+        self._velocity_mode = np.zeros(n, bool)
+        self._hold = False
+        self._speed_cmd = np.zeros(n)        # the motors' speed commands of the last step, rad/s
+        self._clip_warned: set[str] = set()
         self._pending_wrenches: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
         self._wheels_left, self._wheels_right = [], []
         self._wheel_speed = (0.0, 0.0)
         if not self.fixed_base:
-            self._setup_ground(joint_index)
+            for name_, index in joint_index.items():
+                if name_.startswith("track_wheel_"):
+                    (self._wheels_left if "_left_" in name_ else self._wheels_right).append(index)
+                    pb.changeDynamics(self.body, index, lateralFriction=desc.tracks["friction"], physicsClientId=c)
+        self.world.attach(self)
+        self._read_joints()
 
     # ----------------------------------------------------------------------------------------- model
     def _write_bullet_variant(self):
@@ -125,31 +142,50 @@ class BulletMachine:
                     f'<limit effort="{tracks["max_wheel_torque"]}" velocity="100"/></joint>'))
         return elements
 
-    def _setup_ground(self, joint_index) -> None:
-        c = self.client
-        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=c)
-        self.ground = pb.createMultiBody(0, plane, basePosition=[0, 0, 0], physicsClientId=c)
-        pb.changeDynamics(self.ground, -1, lateralFriction=1.0, physicsClientId=c)
-        friction = self.desc.tracks["friction"]          # Bullet multiplies the two frictions: 1.0 * mu
-        for name, index in joint_index.items():
-            if not name.startswith("track_wheel_"):
-                continue
-            (self._wheels_left if "_left_" in name else self._wheels_right).append(index)
-            pb.changeDynamics(self.body, index, lateralFriction=friction, physicsClientId=c)
-        wheels = set(self._wheels_left + self._wheels_right)
-        # only the wheels touch the ground: the bucket must be free to go below z = 0 into the soil
-        for link in [-1, *range(pb.getNumJoints(self.body, physicsClientId=c))]:
-            if link not in wheels:
-                pb.setCollisionFilterPair(self.ground, self.body, -1, link, 0, physicsClientId=c)
-
     # ----------------------------------------------------------------------------------------- control
     def set_targets(self, q_cmd: dict[str, float]) -> None:
-        """Position targets (rad), clipped to the joint limits; joints not named keep their target."""
-        for name, value in q_cmd.items():
-            if name not in self.joint_names:
-                raise UserError(f"joint target: unknown joint {name!r} (actuated: {', '.join(self.joint_names)})")
-            i = self.joint_names.index(name)
-            self._targets[i] = float(np.clip(value, self._lower[i], self._upper[i]))
+        """Position targets (rad), clipped to the joint limits; joints not named keep their command."""
+        self.command(q_target=q_cmd)
+
+    def command(self, q_target=None, qd_target=None, track_speeds=None, hold=None) -> None:
+        """Apply one step's commands: position targets (rad, clipped to the joint limits, a warning once per joint
+        when clipped), velocity targets (rad/s, capped by the actuators), track speeds (m/s) and the emergency stop
+        (hold: True latches the current pose as the target of every joint until released with False)."""
+        if hold is not None and bool(hold) != self._hold:
+            self._hold = bool(hold)
+            if self._hold:
+                self._targets = self._q.copy()
+                self._velocity_mode[:] = False
+        for name, value in (q_target or {}).items():
+            i = self._joint(name)
+            if self._hold:
+                continue
+            value = float(value)
+            clipped = min(max(value, self._lower[i]), self._upper[i])
+            if clipped != value and name not in self._clip_warned and math.isfinite(value):
+                self._clip_warned.add(name)
+                self._say(f"machine {self.name}: {name} target {value:.4f} rad is beyond the joint's limits "
+                          f"[{self._lower[i]:.4f}, {self._upper[i]:.4f}] rad; clipped (said once per joint)")
+            self._targets[i] = clipped
+            self._velocity_mode[i] = False
+        for name, value in (qd_target or {}).items():
+            i = self._joint(name)
+            if self._hold:
+                continue
+            self._qd_targets[i] = float(value)
+            self._velocity_mode[i] = True
+        if track_speeds is not None and not self._hold:
+            self.set_track_speeds(*track_speeds)
+
+    def _joint(self, name: str) -> int:
+        i = self._column.get(name)
+        if i is None:
+            raise UserError(f"joint target: unknown joint {name!r} (actuated: {', '.join(self.joint_names)})")
+        return i
+
+    def _say(self, text: str) -> None:
+        if self._warn is not None:
+            self._warn(text)
 
     def set_track_speeds(self, left: float, right: float) -> None:
         """Track surface speeds (m/s, positive drives forward)."""
@@ -166,15 +202,22 @@ class BulletMachine:
         self._pending_wrenches[index] = (previous[0] + np.asarray(force, float),
                                          previous[1] + np.asarray(torque, float))
 
-    def step(self) -> None:
+    def pre_step(self) -> None:
+        """Set the motors and external forces for the world's next step."""
         c = self.client
-        q = np.array([s[0] for s in pb.getJointStates(self.body, self._indices, physicsClientId=c)])
-        speed = np.clip(self._gain * (self._targets - q), -self._max_speed, self._max_speed)
+        q = self._q
+        speed = np.where(self._velocity_mode, self._qd_targets, self._gain * (self._targets - q))
+        # a velocity command never drives a joint through its limit
+        speed = np.where(self._velocity_mode & (((q >= self._upper) & (speed > 0)) | ((q <= self._lower) & (speed < 0))),
+                         0.0, speed)
+        speed = np.clip(speed, -self._max_speed, self._max_speed)
+        self._speed_cmd = speed
         pb.setJointMotorControlArray(self.body, self._indices, pb.VELOCITY_CONTROL, targetVelocities=speed.tolist(),
                                      forces=self._max_torque.tolist(), physicsClientId=c)
         if not self.fixed_base:
             radius, torque = self.desc.tracks["wheel_radius"], self.desc.tracks["max_wheel_torque"]
-            for wheels, surface_speed in zip((self._wheels_left, self._wheels_right), self._wheel_speed):
+            wheel_speed = (0.0, 0.0) if self._hold else self._wheel_speed
+            for wheels, surface_speed in zip((self._wheels_left, self._wheels_right), wheel_speed):
                 pb.setJointMotorControlArray(self.body, wheels, pb.VELOCITY_CONTROL,
                                              targetVelocities=[surface_speed / radius] * len(wheels),
                                              forces=[torque] * len(wheels), physicsClientId=c)
@@ -184,14 +227,86 @@ class BulletMachine:
             pb.applyExternalForce(self.body, index, force.tolist(), origin.tolist(), pb.WORLD_FRAME, physicsClientId=c)
             pb.applyExternalTorque(self.body, index, torque.tolist(), pb.WORLD_FRAME, physicsClientId=c)
         self._pending_wrenches.clear()
-        pb.stepSimulation(physicsClientId=c)
+
+    def post_step(self) -> None:
+        self._read_joints()
+
+    def step(self) -> None:
+        """Step this machine's world (every machine in it)."""
+        self.world.step()
+
+    def _read_joints(self) -> None:
+        states = pb.getJointStates(self.body, self._indices, physicsClientId=self.client)
+        self._q = np.array([s[0] for s in states])
+        self._qd = np.array([s[1] for s in states])
+        self._effort = np.array([s[3] for s in states])
 
     # ----------------------------------------------------------------------------------------- state
     def joint_states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Joint positions (rad), speeds (rad/s) and motor efforts (N m), in joint_names order."""
-        states = pb.getJointStates(self.body, self._indices, physicsClientId=self.client)
-        return (np.array([s[0] for s in states]), np.array([s[1] for s in states]),
-                np.array([s[3] for s in states]))
+        """Joint positions (rad), speeds (rad/s) and motor efforts (N m) after the last step, in joint_names
+        order."""
+        return self._q.copy(), self._qd.copy(), self._effort.copy()
+
+    @property
+    def max_speed(self) -> np.ndarray:
+        """Actuator speed limit per joint, rad/s (joint_names order)."""
+        return self._max_speed.copy()
+
+    @property
+    def max_torque(self) -> np.ndarray:
+        """Actuator torque limit per joint, N m."""
+        return self._max_torque.copy()
+
+    @property
+    def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper joint limits, rad."""
+        return self._lower.copy(), self._upper.copy()
+
+    @property
+    def applied_targets(self) -> np.ndarray:
+        """Position target of each joint as applied (rad, clipped; NaN where the joint is in velocity mode)."""
+        return np.where(self._velocity_mode, np.nan, self._targets)
+
+    @property
+    def applied_speed_commands(self) -> np.ndarray:
+        """Speed the motors were last told (rad/s), in joint_names order."""
+        return self._speed_cmd.copy()
+
+    def get_state(self):
+        """Everything this machine needs to go on exactly: joints, base, actuator internals (State data)."""
+        from .state import MachineState
+
+        c = self.client
+        other = pb.getJointStates(self.body, self._other_indices, physicsClientId=c) if self._other_indices else []
+        pos, orn = pb.getBasePositionAndOrientation(self.body, physicsClientId=c)
+        vel, omega = pb.getBaseVelocity(self.body, physicsClientId=c)
+        return MachineState(
+            joints=list(self.joint_names), q=self._q.copy(), qd=self._qd.copy(), effort=self._effort.copy(),
+            q_target=self._targets.copy(), qd_target=self._qd_targets.copy(),
+            velocity_mode=self._velocity_mode.copy(), speed_cmd=self._speed_cmd.copy(), hold=self._hold,
+            track_speeds=np.array(self._wheel_speed, float),
+            other_q=np.array([s[0] for s in other]), other_qd=np.array([s[1] for s in other]),
+            base_com_xyz=np.array(pos), base_com_quat=np.array(orn), base_com_vel=np.array(vel),
+            base_com_omega=np.array(omega))
+
+    def set_state(self, s) -> None:
+        if list(s.joints) != self.joint_names:
+            raise ValueError(f"machine {self.name}: the state's joints {list(s.joints)} are not this machine's "
+                             f"{self.joint_names}")
+        c = self.client
+        pb.resetBasePositionAndOrientation(self.body, s.base_com_xyz.tolist(), s.base_com_quat.tolist(),
+                                           physicsClientId=c)
+        pb.resetBaseVelocity(self.body, s.base_com_vel.tolist(), s.base_com_omega.tolist(), physicsClientId=c)
+        for index, q, qd in zip(self._indices, s.q, s.qd):
+            pb.resetJointState(self.body, index, float(q), float(qd), physicsClientId=c)
+        for index, q, qd in zip(self._other_indices, s.other_q, s.other_qd):
+            pb.resetJointState(self.body, index, float(q), float(qd), physicsClientId=c)
+        self._q, self._qd, self._effort = s.q.copy(), s.qd.copy(), s.effort.copy()
+        self._targets, self._qd_targets = s.q_target.copy(), s.qd_target.copy()
+        self._velocity_mode, self._speed_cmd = s.velocity_mode.astype(bool).copy(), s.speed_cmd.copy()
+        self._hold = bool(s.hold)
+        self._wheel_speed = (float(s.track_speeds[0]), float(s.track_speeds[1]))
+        self._pending_wrenches.clear()
 
     def link_state(self, link: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Position and quaternion (x, y, z, w) of the URDF link frame origin in the world, the linear
@@ -227,8 +342,8 @@ class BulletMachine:
         return origin, orn
 
     def close(self) -> None:
-        if self.client is not None and pb.isConnected(self.client):
-            pb.disconnect(self.client)
+        if self._own_world:
+            self.world.close()
         self.client = None
 
     def __enter__(self):

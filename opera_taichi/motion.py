@@ -8,7 +8,6 @@ Three kinds, all ending as a smooth joint-space profile:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,14 +17,6 @@ from .errors import UserError
 
 # Cartesian paths are solved by IK at this rate, then interpolated in joint space.
 TIP_PATH_SAMPLE_HZ = 10.0
-
-
-@dataclass
-class Control:
-    """Commands for one step: joint position targets (rad) and, for a machine on tracks, track speeds (m/s)."""
-
-    q_cmd: dict[str, float] = field(default_factory=dict)
-    track_speeds: tuple[float, float] = (0.0, 0.0)
 
 
 class JointProfile:

@@ -489,7 +489,8 @@ class CsvProblem(Exception):
 
 
 def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
-    """Reads a joint profile: header `t` plus `<joint>` (rad) or `<joint>_deg` columns.
+    """Reads a joint profile: header `t` plus `<joint>` (rad) or `<joint>_deg` columns, or a run's own joints.csv
+    (its `<joint>.q` columns).
 
     Returns (times as written, joint -> angles in rad). Raises CsvProblem with a one-line reason.
     Joint names are checked later, against the machine.
@@ -507,9 +508,13 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
     if "t" not in header:
         raise CsvProblem(f"header has no `t` column, got {_show(header)}")
     joints: dict[str, tuple[int, float]] = {}
+    # a run's own joints.csv: `<joint>.q` are the positions; its other `<joint>.*` columns are not angles
+    recorded = any(name.endswith(".q") for name in header)
     for col, name in enumerate(header):
-        if name == "t":
+        if name == "t" or (recorded and "." in name and not name.endswith(".q")):
             continue
+        if recorded and name.endswith(".q"):
+            name = name[:-2]
         joint, scale = (name[:-4], math.pi / 180) if name.endswith("_deg") else (name, 1.0)
         if not joint or joint in joints or header.count(name) > 1:
             raise CsvProblem(f"header: column {name!r} is empty or repeats a joint")
@@ -517,6 +522,7 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
     if len(rows) < 2:
         raise CsvProblem("has a header but no rows")
     t_col = header.index("t")
+    used = {col for col, _ in joints.values()}
     times: list[float] = []
     angles: dict[str, list[float]] = {j: [] for j in joints}
     for line, row in enumerate(rows[1:], start=2):
@@ -529,7 +535,7 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
             col = header[row.index(bad)]
             raise CsvProblem(f"line {line}, column {col}: expected a number, got {bad.strip()!r}") from None
         for col, v in enumerate(values):
-            if not math.isfinite(v):
+            if not math.isfinite(v) and (col == t_col or col in used):
                 raise CsvProblem(f"line {line}, column {header[col]}: expected a finite number, got {v}")
         if times and not values[t_col] > times[-1]:
             raise CsvProblem(f"line {line}, column t: expected t > {_fmt(times[-1])} (strictly increasing), "
@@ -553,7 +559,8 @@ class CsvMotion(_Model):
 
     type: Literal["csv"] = Field(description="Selects this kind of motion.")
     file: ExistingFile = Field(description="CSV relative to the scene file: header `t` plus `<joint>` (rad) or "
-                                           "`<joint>_deg` columns; t strictly increasing.")
+                                           "`<joint>_deg` columns (or a run's own joints.csv: its `<joint>.q` columns); t "
+                                           "strictly increasing.")
     time_offset: Seconds = Field(0.0, description="Row time t plays at simulated time t + time_offset.")
 
     @model_validator(mode="after")
@@ -604,6 +611,16 @@ class BucketTipPath(_Model):
 Motion = Annotated[Union[JointWaypoints, CsvMotion, BucketTipPath], Field(discriminator="type")]
 
 
+class MachineEntry(MachineConfig):
+    """One machine of several (`machines:`): a machine section with its own name and motion."""
+
+    name: Optional[Annotated[str, BeforeValidator(_NameRule(r"[A-Za-z][A-Za-z0-9_]{0,39}",
+                                                            "a letter, then letters, digits or _ (at most 40)"))]] \
+        = Field(None, description="Unique machine name (ROS namespace, joints.csv prefix); null = the URDF's robot "
+                                  "name.")
+    motion: Optional[Motion] = Field(None, description="This machine's motion, chosen by `type`; null = hold still.")
+
+
 class OutputConfig(_Model):
     """What the run folder gets."""
 
@@ -626,6 +643,9 @@ class Scene(_Model):
     sim: Annotated[SimConfig, _none_to({})] = Field(default_factory=SimConfig, description="Time stepping.")
     soil: Optional[SoilConfig] = Field(None, description="Soil; null = no soil.")
     machine: Optional[MachineConfig] = Field(None, description="Machine; null = no machine.")
+    machines: Annotated[list[MachineEntry], _none_to([])] = Field(
+        default_factory=list, description="Several machines in one world (instead of `machine` + `motion`), each "
+                                          "with its name and motion; they touch each other and the same soil.")
     tools: Annotated[list[ToolConfig], _none_to([])] = Field(default_factory=list,
                                                             description="Standalone rigid tools.")
     motion: Optional[Motion] = Field(None, description="Machine motion, chosen by `type`; null = hold still.")
@@ -644,9 +664,11 @@ class Scene(_Model):
                 raise _fail(f"a unique tool name (tools.{seen[tool.name]} is already {tool.name!r})", tool.name,
                             key=f"tools.{i}.name")
             seen[tool.name] = i
+        if self.machine is not None and self.machines:
+            raise _fail(message="give either machine (one) or machines (a list), not both", key="machines")
         if self.motion is not None and self.machine is None:
-            raise _fail(message="a motion needs a machine: add a machine section (or remove motion)",
-                        key="motion")
+            raise _fail(message="a motion needs a machine: add a machine section (or remove motion; with "
+                                "machines, each has its own motion)", key="motion")
         for key in ("joints_rate", "wrench_rate", "mass_rate"):
             if getattr(self.output, key) > 1.0 / self.sim.dt * (1 + 1e-9):
                 raise _fail(f"a rate in Hz > 0 and <= 1/sim.dt ({_fmt(1.0 / self.sim.dt)})",

@@ -20,8 +20,8 @@ def fake_simulation(monkeypatch):
     """Stands in for opera_taichi.simulation; records what the CLI passes and can be told to fail."""
     calls = {}
 
-    def run_scene(scene, out_dir=None, arch=None, quiet=False):
-        calls.update(scene=scene, out_dir=out_dir, arch=arch, quiet=quiet)
+    def run_scene(scene, out_dir=None, arch=None, quiet=False, **kwargs):
+        calls.update(scene=scene, out_dir=out_dir, arch=arch, quiet=quiet, **kwargs)
         if "raise" in calls:
             raise calls["raise"]
         return types.SimpleNamespace(out_dir=Path(out_dir))
@@ -31,8 +31,10 @@ def fake_simulation(monkeypatch):
         if "raise" in calls:
             raise calls["raise"]
 
-    module = types.SimpleNamespace(run_scene=run_scene, check_scene=check_scene)
-    monkeypatch.setattr(cli, "_simulation_module", lambda required: module)
+    from opera_taichi import model, runner
+
+    monkeypatch.setattr(runner, "run_scene", run_scene)
+    monkeypatch.setattr(model, "check_scene", check_scene)
     return calls
 
 
@@ -42,8 +44,7 @@ def test_validate_prints_ok_and_runs_the_simulation_checks(scene_file, fake_simu
     assert fake_simulation["checked"].sim.duration == 3.0
 
 
-def test_validate_without_a_simulation_module_still_checks_the_schema(scene_file, monkeypatch, capsys):
-    monkeypatch.setattr(cli, "_simulation_module", lambda required: None)
+def test_validate_of_a_scene_without_machine_or_soil(scene_file, capsys):
     assert cli.main(["validate", str(scene_file)]) == 0
     assert capsys.readouterr().out.endswith(": ok\n")
 
@@ -58,20 +59,28 @@ def test_validate_reports_a_check_failure_as_one_line(scene_file, fake_simulatio
 def test_run_passes_out_dir_arch_and_quiet(scene_file, fake_simulation, tmp_path, capsys):
     out = tmp_path / "run1"
     assert cli.main(["run", str(scene_file), "--out", str(out), "--arch", "auto"]) == 0
-    assert fake_simulation["out_dir"] == out and fake_simulation["arch"] == "auto"
+    assert fake_simulation["out_dir"] == str(out) and fake_simulation["arch"] == "auto"
     assert fake_simulation["scene"].sim.arch == "auto"  # the manifest records the backend asked for
-    assert fake_simulation["scene"].output.dir == out
     assert fake_simulation["quiet"] is False
     assert capsys.readouterr().out == f"{out}\n"
 
 
-def test_run_quiet_prints_nothing_and_defaults_to_a_timestamped_folder(scene_file, fake_simulation, capsys):
-    assert cli.main(["run", str(scene_file), "--quiet"]) == 0
+def test_run_quiet_prints_nothing(scene_file, fake_simulation, capsys, tmp_path):
+    assert cli.main(["run", str(scene_file), "--quiet", "--out", str(tmp_path / "r")]) == 0
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err == ""
-    out_dir = fake_simulation["out_dir"]
-    assert out_dir.parent == Path("runs") and out_dir.name.startswith("dig-")
     assert fake_simulation["arch"] == "cpu" and fake_simulation["quiet"] is True
+
+
+def test_default_run_folders_are_timestamped_and_never_collide(scene_file, tmp_path, monkeypatch):
+    from opera_taichi.runner import claim_run_folder
+    from opera_taichi.scene import load_scene
+
+    monkeypatch.chdir(tmp_path)
+    scene = load_scene(scene_file)
+    first, second = claim_run_folder(scene, None), claim_run_folder(scene, None)  # within the same second
+    assert first.parent == second.parent == Path("runs") and first.name.startswith("dig-")
+    assert first != second and first.is_dir() and second.is_dir()
 
 
 def test_divergence_exits_3_with_one_line(scene_file, fake_simulation, capsys):
@@ -93,13 +102,14 @@ def test_sigterm_exits_143_with_one_line_and_restores_the_handler(scene_file, mo
     before = signal.getsignal(signal.SIGTERM)
     seen = {}
 
-    def terminated_run(scene, out_dir=None, arch=None, quiet=False):
+    def terminated_run(scene, out_dir=None, arch=None, quiet=False, **kwargs):
         seen["handler"] = signal.getsignal(signal.SIGTERM)
         os.kill(os.getpid(), signal.SIGTERM)  # as a job manager or `timeout` would
         raise AssertionError("SIGTERM did not stop the run")
 
-    monkeypatch.setattr(cli, "_simulation_module",
-                        lambda required: types.SimpleNamespace(run_scene=terminated_run))
+    from opera_taichi import runner
+
+    monkeypatch.setattr(runner, "run_scene", terminated_run)
     assert cli.main(["run", str(scene_file), "--quiet"]) == 143
     assert capsys.readouterr().err == "terminated (SIGTERM)\n"
     assert seen["handler"] is not before            # the run was covered by the CLI's handler

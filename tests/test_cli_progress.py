@@ -13,6 +13,8 @@ class FakeTerminal(io.StringIO):
 
 def _drive(bar: Progress, duration: float):
     with bar:
+        bar.phase("compiling the soil kernels")
+        bar.begin_run(0.0)
         for i in range(1, 11):
             bar.update(sim_time=duration * i / 10, wall_time=float(i))  # 1 wall second per tenth
 
@@ -45,3 +47,17 @@ def test_terminal_bar_shows_simulated_time_and_real_time_factor():
 ])
 def test_real_time_factor_and_eta(sim, wall, expected):
     assert Progress(20.0, quiet=True).describe(sim, wall) == expected
+
+
+def test_setup_phases_show_and_a_run_ends_at_100_percent():
+    stream = FakeTerminal()
+    with Progress(1.0, stream=stream) as bar:
+        bar.phase("preparing")
+        for k in range(1, 5):
+            bar.settling(0.5 * k, 2.0)
+        bar.begin_run(0.0)
+        bar.update(0.5, 1.0)
+        bar.update(1.0, 1.01, final=True)  # sooner than a redraw would be due: the last one is always drawn
+    text = stream.getvalue()
+    assert "settling the soil bed" in text and "2.00/2.00 s simulated" in text
+    assert "100%" in text and "1.00/1.00 s simulated" in text

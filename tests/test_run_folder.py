@@ -39,7 +39,7 @@ def test_run_folder_holds_the_contract_files(dig_run):
 
 def test_joints_csv_columns_rate_and_units(dig_run):
     cols = read_csv_columns(dig_run / "joints.csv")
-    expected = ["t"] + [f"{j}.{k}" for j in JOINTS for k in ("q", "qd", "q_cmd", "effort")]
+    expected = ["t"] + [f"{j}.{k}" for j in JOINTS for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")]
     with open(dig_run / "joints.csv") as fh:
         assert next(csv.reader(fh)) == expected
     t = cols["t"]
@@ -83,3 +83,17 @@ def test_recorded_log_replays_through_csv_motion(dig_run, tmp_path):
         # ...and the machine follows it with at most the hydraulic loop's lag, speed / gain
         vmax, gain = gains[j]
         assert np.max(np.abs(replay[f"{j}.q"] - replay[f"{j}.q_cmd"])) < vmax / gain + 0.01, j
+
+
+def test_a_runs_own_joints_csv_replays_as_a_csv_motion(dig_run, tmp_path):
+    """The run folder's joints.csv is a motion file as it stands: its `<joint>.q` columns are the positions (the
+    other columns are ignored), and the replay commands the recorded profile within 1 mrad."""
+    original = read_csv_columns(dig_run / "joints.csv")
+    out = tmp_path / "replay"
+    rc = main(["run", str(ROOT / "scenes" / "zx120_dig_cycle.yaml"), "--out", str(out), "--quiet",
+               "--set", "sim.duration=12", "--set", f"motion={{type: csv, file: {dig_run / 'joints.csv'}}}"])
+    assert rc == 0
+    replay = read_csv_columns(out / "joints.csv")
+    assert np.array_equal(replay["t"], original["t"])
+    for j in JOINTS:
+        assert np.max(np.abs(replay[f"{j}.q_cmd"][1:] - original[f"{j}.q"][1:])) < 1e-3, j

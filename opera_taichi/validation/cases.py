@@ -235,6 +235,17 @@ def resolution_key(case: str, p: dict | None = None) -> str:
     return "blade_cut_3d" if case == "blade_cut" and p is not None and p.get("plane_strain") == 0.0 else case
 
 
+def coarser_than_gate(case: str, params, resolution: str) -> str:
+    """A sentence when `resolution` is coarser than the one the case's gate is calibrated at (its default), where a
+    FAIL may be the resolution rather than the physics; '' otherwise."""
+    row = resolution_key(case, parse_params(case, params))
+    n, gate_n = grains_across(row, resolution), ACROSS[row]["default"]
+    if n >= gate_n:
+        return ""
+    return (f"{n} grains across is coarser than the {gate_n} the {case} gate is calibrated at (the default "
+            f"resolution); below it the gate's tolerance does not hold, see docs/validation.md's convergence notes")
+
+
 def grains_across(case: str, resolution: str) -> int:
     """Particle diameters across the case's key length: a named resolution (ACROSS), or a whole number as given,
     for convergence studies past `fine` (e.g. the plane-strain blade at 32 across the cut)."""
@@ -522,14 +533,15 @@ def run_case(case: str, params=None, resolution: str = "default", out_dir: str |
              arch: str | None = None, quiet: bool = True) -> dict:
     """Run one validation case; writes OUT/run/ (the usual run folder) and OUT/metrics.json; returns the metrics."""
     from ..scene import load_scene
-    from ..simulation import run_scene
+    from ..runner import run_scene
 
     p = parse_params(case, params)
     out = Path(out_dir) if out_dir is not None else Path("runs") / f"validate-{case}-{time.strftime('%Y%m%d-%H%M%S')}"
     sets, geo = build_overrides(case, p, resolution, work_dir=out)
     scene = load_scene(scene_file(case), sets)
     t0 = time.perf_counter()
-    result = run_scene(scene, out_dir=out / "run", arch=arch, quiet=quiet)
+    # OUT/run is this case's own folder: a run kept there is replaced (resume decides what is kept, not run_scene)
+    result = run_scene(scene, out_dir=out / "run", arch=arch, quiet=quiet, overwrite=True)
     wall = round(time.perf_counter() - t0, 3)
     return _score(case, p, geo, sets, resolution, out, result.out_dir, result.particles, wall)
 
@@ -564,7 +576,7 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
     change in how a metric is read needs no new simulation."""
     from ..dem_soil import SOLVER_VERSION
     from ..scene import load_scene
-    from ..simulation import soil_parameters
+    from ..model import soil_parameters
 
     out = Path(out_dir)
     run_dir = out / "run"

@@ -36,7 +36,7 @@ def gate_set() -> list[tuple[str, str, dict]]:
 
 
 def run_all(resolution: str = "default", out_dir=None, report_path="docs/validation.md", arch=None,
-            quiet: bool = True, resume: bool = False, report_only: bool = False) -> Path:
+            quiet: bool = True, resume: bool = False, report_only: bool = False, with_failures: bool = False):
     """Run every gate case into OUT/<label>/ and write the report; returns the report's path.
 
     resume: a gate whose run in OUT/<label>/ is what this code would run (finished_metrics) is not run again, so
@@ -59,7 +59,13 @@ def run_all(resolution: str = "default", out_dir=None, report_path="docs/validat
     command = f"opera-taichi validate-physics all --resolution {resolution} --out {out}"
     if str(report_path) != "docs/validation.md":
         command += f" --report {report_path}"
-    return write_report(results, Path(report_path), command, not_run=not_run)
+    path = write_report(results, Path(report_path), command, not_run=not_run)
+    return (path, failed_gates(results)) if with_failures else path
+
+
+def failed_gates(results: list[dict]) -> list[str]:
+    """Labels of the gates that failed: single runs and the ratio gates (a shown, ungated run is not a failure)."""
+    return [r.get("label", r.get("case")) for r in results + derived_gates(results) if r.get("passed") is False]
 
 
 def derived_gates(results: list[dict]) -> list[dict]:

@@ -1,0 +1,385 @@
+"""Observers: receive the simulation after a step, each at its own rate, and never own the loop.
+
+An observer has a `rate` (Hz of simulated time; None = after every step) and `start`, `sample`, `close`. What it
+needs to continue after a resume it returns from `get_state` (saved in each checkpoint) and takes back in
+`set_state` before `start`. An observer that talks to a network subclasses ThreadedObserver: `snapshot` runs in the
+simulation's thread and must be cheap, `publish` runs on the observer's own thread, and only the latest snapshot
+waits there (a slow client skips snapshots, it never slows the simulation).
+
+The run folder's files are observers too (this module); runner.py puts them together.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from .geometry import quat_to_matrix
+from .recorders import write_terrain
+
+
+@dataclass
+class RunContext:
+    """What observers know about the run they record."""
+
+    out: Path | None                         # run folder (None: no folder, e.g. the Python API)
+    scene: object = None                     # the resolved Scene
+    quiet: bool = False
+    resumed: bool = False                    # continuing a run folder from a checkpoint
+    states: dict = field(default_factory=dict)  # observer key -> state saved in the checkpoint
+
+
+class Observer:
+    rate: float | None = None
+
+    @property
+    def key(self) -> str:
+        """Name under which the checkpoint keeps this observer's state."""
+        return type(self).__name__
+
+    def start(self, sim, run: RunContext) -> None: ...
+
+    def sample(self, sim) -> None: ...
+
+    def flush(self) -> None:
+        """Make everything sampled so far durable (called before a checkpoint is written)."""
+
+    def get_state(self) -> dict:
+        return {}
+
+    def set_state(self, state: dict) -> None: ...
+
+    def close(self, sim, status: str, message: str) -> None: ...
+
+
+class ThreadedObserver(Observer):
+    """Latest wins: `snapshot(sim)` in the simulation's thread, `publish(snapshot)` on this observer's thread."""
+
+    def snapshot(self, sim):
+        raise NotImplementedError
+
+    def publish(self, snapshot) -> None:
+        raise NotImplementedError
+
+    def start(self, sim, run: RunContext) -> None:
+        self._latest = None
+        self._wake = threading.Condition()
+        self._stopping = False
+        self.published = 0
+        self.skipped = 0
+        self._thread = threading.Thread(target=self._work, name=f"observer-{self.key}", daemon=True)
+        self._thread.start()
+
+    def sample(self, sim) -> None:
+        snap = self.snapshot(sim)
+        with self._wake:
+            if self._latest is not None:
+                self.skipped += 1
+            self._latest = snap
+            self._wake.notify()
+
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while self._latest is None and not self._stopping:
+                    self._wake.wait()
+                if self._latest is None and self._stopping:
+                    return
+                snap, self._latest = self._latest, None
+            try:
+                self.publish(snap)
+                self.published += 1
+            except Exception as exc:  # a sink's failure is logged, never the simulation's
+                print(f"warning: observer {self.key}: {type(exc).__name__}: {exc}", file=sys.stderr)
+
+    def close(self, sim, status: str, message: str) -> None:
+        with self._wake:
+            self._stopping = True
+            self._wake.notify()
+        self._thread.join(timeout=10.0)
+
+
+class ObserverBus:
+    """Calls each observer when its rate says it is due (half a step of tolerance, no drift)."""
+
+    def __init__(self, observers):
+        self.observers = list(observers)
+        self._next = [0.0] * len(self.observers)
+        self._period = [None] * len(self.observers)
+        keys = [o.key for o in self.observers]
+        for k in keys:
+            if keys.count(k) > 1:
+                raise ValueError(f"two observers share the key {k!r}; give one a `key` of its own")
+
+    def start(self, sim, run: RunContext) -> None:
+        for i, obs in enumerate(self.observers):
+            saved = run.states.get(obs.key)
+            if run.resumed and saved is not None:
+                obs.set_state(saved.get("observer", {}))
+                self._next[i] = float(saved.get("next_t", 0.0))
+            self._period[i] = None if obs.rate is None else 1.0 / float(obs.rate)
+            if isinstance(obs, Checkpointer):
+                obs.bus = self
+            obs.start(sim, run)
+        if not run.resumed:
+            self.after_step(sim)  # the initial state, at t = 0
+
+    def after_step(self, sim) -> None:
+        t = sim.t
+        nxt = self._next
+        for i, obs in enumerate(self.observers):
+            if t + 1e-9 >= nxt[i]:
+                obs.sample(sim)
+                period = self._period[i]
+                if period is not None:
+                    nxt[i] = (math.floor(t / period + 1e-6) + 1) * period
+
+    def flush(self) -> None:
+        for obs in self.observers:
+            obs.flush()
+
+    def states(self) -> dict:
+        return {obs.key: {"observer": obs.get_state(), "next_t": nxt} for obs, nxt in zip(self.observers, self._next)}
+
+    def close(self, sim, status: str, message: str) -> None:
+        for obs in self.observers:
+            try:
+                obs.close(sim, status, message)
+            except Exception as exc:  # one observer's failure must not cost the others' files
+                print(f"warning: {obs.key} not closed ({type(exc).__name__}: {exc})", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------------------- run-folder files
+class CsvObserver(Observer):
+    """A CSV file in the run folder, one row per sample (several for per-tool files), flushed as the run goes;
+    a resumed run truncates it to the bytes of its checkpoint and appends."""
+
+    FLUSH_EVERY = 200
+    filename = ""
+
+    def header(self, sim) -> list[str]:
+        raise NotImplementedError
+
+    def rows(self, sim) -> list[list]:
+        raise NotImplementedError
+
+    def start(self, sim, run: RunContext) -> None:
+        self.path = run.out / self.filename
+        self._offset = getattr(self, "_offset", None)
+        if run.resumed and self._offset is not None and self.path.is_file():
+            self._fh = open(self.path, "r+", newline="", encoding="utf-8")
+            self._fh.truncate(self._offset)
+            self._fh.seek(self._offset)
+            self._writer = csv.writer(self._fh)
+        else:
+            self._fh = open(self.path, "w", newline="", encoding="utf-8")
+            self._writer = csv.writer(self._fh)
+            self._writer.writerow(self.header(sim))
+        self._rows = 0
+
+    def sample(self, sim) -> None:
+        t = _fmt(sim.t)
+        for row in self.rows(sim):
+            self._writer.writerow([t] + [v if isinstance(v, str) else _fmt(v) for v in row])
+        self._rows += 1
+        if self._rows % self.FLUSH_EVERY == 0:
+            self._fh.flush()
+
+    def flush(self) -> None:
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def get_state(self) -> dict:
+        return {"offset": self._fh.tell()}
+
+    def set_state(self, state: dict) -> None:
+        self._offset = state.get("offset")
+
+    def close(self, sim, status, message) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+
+def _fmt(v) -> str:
+    return f"{float(v):.9g}"
+
+
+class JointsCsv(CsvObserver):
+    """joints.csv: per joint q, qd, q_cmd (the applied position target; NaN in velocity mode), qd_cmd (the motor's
+    speed command) and effort. Columns are `<joint>.q` for one machine, `<machine>.<joint>.q` for several."""
+
+    filename = "joints.csv"
+
+    def __init__(self, rate: float):
+        self.rate = rate
+
+    def header(self, sim) -> list[str]:
+        return ["t"] + [f"{c}.{k}" for c in joint_columns(sim) for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")]
+
+    def rows(self, sim):
+        row = []
+        for m in sim.machines.values():
+            q, qd, effort, cmd, speed = m._q, m._qd, m._effort, m.applied_targets, m._speed_cmd
+            for k in range(len(q)):
+                row += [q[k], qd[k], cmd[k], speed[k], effort[k]]
+        return [row]
+
+
+def joint_columns(sim) -> list[str]:
+    several = len(sim.machines) > 1
+    return [f"{name}.{j}" if several else j for name, m in sim.machines.items() for j in m.joint_names]
+
+
+class WrenchCsv(CsvObserver):
+    """tool_wrench.csv: t, tool, fx, fy, fz, tx, ty, tz: the soil's force and torque on each tool."""
+
+    filename = "tool_wrench.csv"
+
+    def __init__(self, rate: float):
+        self.rate = rate
+
+    def header(self, sim):
+        return ["t", "tool", "fx", "fy", "fz", "tx", "ty", "tz"]
+
+    def rows(self, sim):
+        return [[b.name] + list(sim.tool_wrench[i]) for i, b in enumerate(sim.model.bindings)]
+
+
+def hull_halfspaces(mesh) -> np.ndarray:
+    """(n, 4) plane equations of the convex hull of a tool mesh: inside when n.x + d <= 0 for all.
+    The hull of an open bucket is its struck volume (the opening closed by the strike plane)."""
+    hull = mesh.convex_hull
+    normals = hull.face_normals
+    d = -np.einsum("ij,ij->i", normals, hull.triangles[:, 0, :])
+    return np.hstack([normals, d[:, None]])
+
+
+def inside_tools(sim, planes: list[np.ndarray], positions: np.ndarray) -> list[np.ndarray]:
+    """Per tool (binding order), a mask of the positions inside its convex hull now."""
+    out = []
+    for i, hull in enumerate(planes):
+        p, q, _, _ = sim.tool_pose(i)
+        local = (positions - p) @ quat_to_matrix(q)
+        out.append(np.all(local @ hull[:, :3].T + hull[:, 3] <= 0.0, axis=1))
+    return out
+
+
+def mass_in_tools(sim, planes: list[np.ndarray]) -> list[float]:
+    """Soil mass (kg) whose centres lie inside each tool's convex hull (binding order)."""
+    parts = sim.soil.particles()
+    return [float(parts["masses"][m].sum()) for m in inside_tools(sim, planes, parts["positions"])]
+
+
+def ground_and_all_heightmaps(sim, planes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(z, z_all) on the model's terrain grid: soil resting on the ground (grains inside a tool's hull left out,
+    so a loaded bucket over the trench is not read as a heap), and every grain."""
+    grid, soil = sim.model.soil.grid, sim.soil
+    z_all = soil.heightmap(grid.x, grid.y)
+    masks = inside_tools(sim, planes, soil.particles()["positions"]) if planes else []
+    carried = np.logical_or.reduce(masks) if masks else None
+    if carried is None or not np.any(carried):
+        return z_all, z_all
+    return soil.heightmap(grid.x, grid.y, exclude=carried), z_all
+
+
+class SoilMassCsv(CsvObserver):
+    """soil_mass.csv: t, mass_kg, particles_kg, out_of_domain_kg, in_<tool>_kg (mass inside each tool's hull)."""
+
+    filename = "soil_mass.csv"
+
+    def __init__(self, rate: float):
+        self.rate = rate
+
+    def header(self, sim):
+        self._planes = [hull_halfspaces(b.mesh) for b in sim.model.bindings]
+        return ["t", "mass_kg", "particles_kg", "out_of_domain_kg"] + [f"in_{b.name}_kg" for b in sim.model.bindings]
+
+    def start(self, sim, run):
+        self._planes = [hull_halfspaces(b.mesh) for b in sim.model.bindings]
+        super().start(sim, run)
+
+    def rows(self, sim):
+        budget = sim.soil.mass_budget()
+        return [[sum(budget.values()), budget["particles"], budget["out_of_domain"]] + mass_in_tools(sim, self._planes)]
+
+
+class TerrainNpz(Observer):
+    """terrain_initial.npz at the start, terrain_final.npz at the end (and particles_final.npz when asked)."""
+
+    rate = 1e-9  # only the initial sample; the final one is written at close
+
+    def __init__(self, particles_final: bool = False):
+        self.particles_final = particles_final
+
+    def start(self, sim, run):
+        self.out = run.out
+        self.planes = [hull_halfspaces(b.mesh) for b in sim.model.bindings]
+        if not run.resumed:
+            self._write(sim, "terrain_initial.npz")
+
+    def _write(self, sim, name):
+        grid = sim.model.soil.grid
+        z, z_all = ground_and_all_heightmaps(sim, self.planes)
+        write_terrain(self.out / name, grid.x, grid.y, z, sim.t, z_all=z_all)
+
+    def close(self, sim, status, message):
+        self._write(sim, "terrain_final.npz")
+        if self.particles_final:
+            np.savez_compressed(self.out / "particles_final.npz", **sim.soil.particles())
+
+
+class Checkpointer(Observer):
+    """checkpoints/step-<n>.ckpt.npz every `every` simulated seconds, with every other observer's state; the
+    newest `keep` are kept."""
+
+    def __init__(self, every: float, keep: int = 2):
+        self.rate = 1.0 / float(every)
+        self.keep = keep
+        self.bus: ObserverBus | None = None   # set by the bus
+
+    def start(self, sim, run):
+        self.dir = run.out / "checkpoints"
+        self.dir.mkdir(exist_ok=True)
+        self._first = not run.resumed
+
+    def sample(self, sim):
+        if self._first:  # t = 0 needs no checkpoint: a run killed before the first one starts again
+            self._first = False
+            return
+        self.bus.flush()
+        states = {k: v for k, v in self.bus.states().items() if k != self.key}
+        sim.save_checkpoint(self.dir / f"step-{sim.step_count:09d}.ckpt.npz", extra={"observers": states})
+        for old in sorted(self.dir.glob("step-*.ckpt.npz"))[:-self.keep]:
+            old.unlink(missing_ok=True)
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    found = sorted((Path(run_dir) / "checkpoints").glob("step-*.ckpt.npz"))
+    return found[-1] if found else None
+
+
+class Heartbeat(Observer):
+    """Keeps manifest.json's `heartbeat` (wall clock) fresh while the run goes, every `interval` wall seconds, so a
+    run whose process died can be told from one still running."""
+
+    def __init__(self, manifest, interval: float = 5.0):
+        self.manifest, self.interval = manifest, interval
+        self._last = time.monotonic()
+
+    def sample(self, sim):
+        now = time.monotonic()
+        if now - self._last >= self.interval:
+            self._last = now
+            self.manifest.beat(sim)
+
+
+def now_iso() -> str:
+    return datetime.now().isoformat(timespec="seconds")

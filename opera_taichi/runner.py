@@ -1,0 +1,385 @@
+"""run_scene: drive a scene to its end and write its run folder. The whole loop is
+
+    while sim.step_count < n_steps:
+        sim.step(controller.control(sim, t_next))
+        bus.after_step(sim)
+
+controllers in, observers out: the files of the run folder, the manifest's heartbeat, the progress bar,
+checkpoints, and whatever the caller adds (a ROS bridge, a viewer) are observers; a bridge or a script is the
+controller. Adding either changes nothing here.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import shutil
+import socket
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .control import ScriptController
+from .errors import DivergenceError, UserError
+from .model import build_model
+from .observers import (Checkpointer, Heartbeat, JointsCsv, Observer, ObserverBus, RunContext, SoilMassCsv,
+                        TerrainNpz, WrenchCsv, joint_columns, latest_checkpoint, now_iso)
+from .recorders import write_json
+from .simulation import Simulation, read_checkpoint_header
+
+
+@dataclass
+class RunResult:
+    out_dir: Path
+    status: str
+    sim_time: float
+    wall_time: float
+    real_time_factor: float
+    particles: int
+    message: str = ""
+
+
+def _versions() -> dict:
+    """Versions of what produced the run; read from package metadata so nothing heavy is imported."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"opera_taichi": __version__, "python": platform.python_version()}
+    for dist in ("taichi", "pybullet", "numpy", "trimesh", "yourdfpy", "pydantic"):
+        try:
+            out[dist] = version(dist)
+        except PackageNotFoundError:
+            out[dist] = None
+    return out
+
+
+class Manifest(Observer):
+    """manifest.json: written when the run starts, kept fresh by the heartbeat, closed with the run's status."""
+
+    rate = 1e-9
+
+    def __init__(self, path: Path, data: dict):
+        self.path, self.data = path, data
+
+    def write(self) -> None:
+        write_json(self.path, self.data)
+
+    def beat(self, sim) -> None:
+        self.data.update(heartbeat=now_iso(), sim_time=round(sim.t, 9))
+        self.write()
+
+    def close(self, sim, status, message) -> None:
+        self.data.update(status=status, message=message, finished=now_iso(), heartbeat=now_iso())
+        self.data.pop("status_before_resume", None)
+        self.write()
+
+
+class ProgressBar(Observer):
+    """Simulated time, real-time factor and ETA; the pace is measured from the end of the first step, so the
+    kernels' compilation (a phase of its own) does not count."""
+
+    def __init__(self, progress):
+        self._bar = progress
+
+    def start(self, sim, run):
+        self.rate = 1.0 / (50 * sim.model.dt)
+        self._t0, self._wall0 = None, None
+        self._bar.phase("compiling the soil kernels" if sim.soil is not None else "starting")
+
+    def sample(self, sim):
+        if self._t0 is None:
+            if sim.step_count == 0:
+                return
+            self._t0, self._wall0 = sim.t, time.perf_counter()
+            self._bar.begin_run(sim.t)
+        self._bar.update(sim.t, time.perf_counter() - self._wall0, start=self._t0)
+
+    def close(self, sim, status, message):
+        if self._wall0 is not None:
+            self._bar.update(sim.t, time.perf_counter() - self._wall0, start=self._t0, final=True)
+
+
+def _soil_block(sim) -> dict:
+    block = sim.soil.describe()
+    block["bulk"] = vars(sim.model.soil.bulk).copy()
+    block["substeps_per_step"] = int(math.ceil(sim.model.dt / sim.soil.dt - 1e-9))
+    return block
+
+
+def _new_manifest(scene, model) -> dict:
+    from .scene import scene_to_dict
+
+    return {"name": scene.name, "status": "running", "scene": scene_to_dict(scene), "versions": _versions(),
+            "seed": int(scene.sim.seed), "started": now_iso(), "heartbeat": now_iso(), "pid": os.getpid(),
+            "host": socket.gethostname(), "command": " ".join(sys.argv), "warnings": list(model.warnings),
+            "machines": [m.name for m in model.machines]}
+
+
+def _engine_block(sim) -> dict:
+    data = {"arch": sim.arch}
+    if sim.soil is not None:
+        data["particles"] = int(sim.soil.n_particles)
+        data["soil"] = _soil_block(sim)
+    if sim.arch == "x64":  # the soil's CPU threads (results do not depend on them; speed does)
+        import taichi as ti
+
+        data["cpu_threads"] = int(ti.lang.impl.current_cfg().cpu_max_num_threads)
+    return data
+
+
+def default_observers(scene, sim, manifest: Manifest, quiet: bool, progress) -> list[Observer]:
+    """The run folder's own observers; closed in this order (the manifest last, with the final status)."""
+    out = [Heartbeat(manifest)]
+    if sim.machines:
+        out.append(JointsCsv(scene.output.joints_rate))
+    if sim.soil is not None:
+        out += [WrenchCsv(scene.output.wrench_rate), SoilMassCsv(scene.output.mass_rate),
+                TerrainNpz(scene.output.particles_final)]
+    if scene.output.plots:
+        out.append(Plots())
+    out += [ProgressBar(progress), manifest]
+    return out
+
+
+def claim_run_folder(scene, out_dir, *, overwrite: bool = False, resume: bool = False) -> Path:
+    """The run folder, made ready: never another run's folder unless overwrite (emptied first) or resume.
+    Without out_dir: output.dir, else runs/<name>-<time>, with -2, -3 ... so two runs never share one."""
+    from .scene import resolve_out_dir
+
+    explicit = out_dir is not None or scene.output.dir is not None
+    out = resolve_out_dir(scene, out_dir)
+    key = "--out" if out_dir is not None else "output.dir"
+    if resume:
+        return out
+    if not explicit:
+        base, k = out, 1
+        while True:
+            try:
+                out.mkdir(parents=True, exist_ok=False)
+                return out
+            except FileExistsError:
+                k += 1
+                out = base.with_name(f"{base.name}-{k}")
+            except OSError as exc:
+                raise UserError(f"cannot create the run folder {out} ({exc.strerror})") from None
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{key}: {out} is a file, not a folder")
+    if (out / "manifest.json").is_file():
+        if not overwrite:
+            try:
+                status = json.loads((out / "manifest.json").read_text()).get("status", "unknown")
+            except (OSError, ValueError):
+                status = "unreadable"
+            raise UserError(f"{key}: {out} holds a run already (status {status}); use --overwrite to replace it, "
+                            f"--resume {out} to continue it, or another folder")
+        for item in out.iterdir():
+            shutil.rmtree(item) if item.is_dir() and not item.is_symlink() else item.unlink()
+    elif out.is_dir() and any(out.iterdir()):
+        raise UserError(f"{key}: {out} is not empty and holds no run; give a new or empty folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{key}: cannot create the run folder {out} ({exc.strerror})") from None
+    return out
+
+
+class Plots(Observer):
+    """The PNGs, drawn from the closed run folder's files when the run ends."""
+
+    rate = 1e-9
+
+    def start(self, sim, run):
+        self.out = run.out
+
+    def close(self, sim, status, message):
+        write_plots(self.out, joint_columns(sim), _limits(sim))
+
+
+def _limits(sim) -> dict:
+    several = len(sim.machines) > 1
+    out = {}
+    for name, m in sim.machines.items():
+        for j in m.joint_names:
+            act = m.desc.actuators[j]
+            out[f"{name}.{j}" if several else j] = (act.max_speed, act.max_torque)
+    return out
+
+
+def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None, quiet: bool = False, *,
+              controller=None, observers=(), checkpoint_every: float | None = None, resume: bool = False,
+              overwrite: bool = False) -> RunResult:
+    """Run a scene to its end and write the run folder. `controller` replaces the scene's motion scripts;
+    `observers` are added to the run folder's own. With resume=True, out_dir is a run folder to continue from its
+    newest checkpoint. Raises UserError (bad input) or DivergenceError (after writing what was recorded)."""
+    from .progress import Progress
+
+    if not hasattr(scene, "sim"):  # a path: load it as `run` does
+        from .scene import load_scene
+
+        scene = load_scene(scene)
+    model = build_model(scene)
+    out = claim_run_folder(scene, out_dir, overwrite=overwrite, resume=resume)
+    scene.output.dir = out  # the manifest's resolved scene names the folder actually written
+    if not quiet and not resume:
+        for w in model.warnings:
+            print(f"warning: {w}", file=sys.stderr)
+    arch = arch or scene.sim.arch
+    if resume:
+        previous, data = run_folder_status(out)
+        manifest = Manifest(out / "manifest.json", data)
+        manifest.data.update(status="running", pid=os.getpid(), host=socket.gethostname(), heartbeat=now_iso(),
+                             status_before_resume=previous)
+    else:
+        manifest = Manifest(out / "manifest.json", _new_manifest(scene, model))
+    if checkpoint_every is not None:
+        manifest.data["checkpoint_every"] = float(checkpoint_every)
+    manifest.write()
+
+    status, message, sim, bus = "done", "", None, None
+    wall0 = time.perf_counter()
+    wall_start = wall0
+    t_start = 0.0
+    try:
+        with Progress(float(scene.sim.duration), quiet=quiet) as progress:
+            ckpt = latest_checkpoint(out) if resume else None
+            if resume and ckpt is None:
+                raise UserError(f"--resume: {out} has no checkpoint (run it with --checkpoint-every SECONDS)")
+            progress.phase("preparing: machine, soil bed (poured and settled once, then cached), kernels")
+            sim = Simulation(model, arch=arch, build_beds=ckpt is None, quiet=quiet,
+                             on_settle=progress.settling)
+            states = {}
+            if resume:
+                states = sim.load_checkpoint(ckpt).get("observers", {})
+                manifest.data.setdefault("resumed", []).append(
+                    {"at": now_iso(), "from_checkpoint": ckpt.name, "sim_time": sim.t, "pid": os.getpid(),
+                     "previous_status": manifest.data.get("status_before_resume", "running")})
+            else:
+                manifest.data.update(_engine_block(sim))
+            manifest.data["setup_wall_time_s"] = round(time.perf_counter() - wall0, 3)
+            manifest.write()
+
+            controller = controller or ScriptController(model)
+            parts = default_observers(scene, sim, manifest, quiet, progress) + list(observers)
+            every = checkpoint_every if checkpoint_every is not None else manifest.data.get("checkpoint_every")
+            if every:
+                parts.append(Checkpointer(float(every)))  # last: it saves the others' states after they sampled
+            bus = ObserverBus(parts)
+            run = RunContext(out=out, scene=scene, quiet=quiet, resumed=resume, states=states)
+            n_steps = int(round(float(scene.sim.duration) / model.dt))
+            t_start = sim.t
+            wall_start = time.perf_counter()
+            bus.start(sim, run)
+            dt = model.dt
+            while sim.step_count < n_steps:
+                sim.step(controller.control(sim, (sim.step_count + 1) * dt))
+                bus.after_step(sim)
+    except DivergenceError as exc:
+        status, message = "diverged", str(exc)
+        raise
+    except KeyboardInterrupt as exc:
+        status, message = "interrupted", str(exc) or "interrupted by the user"
+        raise
+    except UserError as exc:  # e.g. a bed that does not fit, found while building the soil
+        status, message = "bad input", str(exc)
+        raise
+    except BaseException as exc:
+        status, message = "error", f"{type(exc).__name__}: {exc}"
+        raise
+    finally:
+        wall = time.perf_counter() - wall_start
+        done = (sim.t - t_start) if sim is not None else 0.0
+        manifest.data.update(sim_time=round(sim.t, 9) if sim is not None else 0.0, wall_time_s=round(wall, 3),
+                             real_time_factor=(done / wall) if wall > 0 and done > 0 else None)
+        if sim is not None and sim.soil is not None:
+            manifest.data["particle_steps_per_s"] = (sim.soil.n_particles * done / sim.soil.dt / wall) \
+                if wall > 0 else None
+            manifest.data["soil_mass_final"] = sim.soil.mass_budget()
+        if sim is not None and sim.warnings:
+            manifest.data["run_warnings"] = list(sim.warnings)
+        try:
+            if bus is not None:
+                bus.close(sim, status, message)
+            else:
+                manifest.close(sim, status, message)
+        finally:
+            if sim is not None:
+                sim.close()
+    return RunResult(out, status, sim.t, wall, manifest.data["real_time_factor"] or 0.0,
+                     int(sim.soil.n_particles) if sim.soil is not None else 0, message)
+
+
+def write_plots(out: Path, joints, limits=None) -> None:
+    from . import plots
+
+    try:
+        if (out / "joints.csv").is_file() and joints:
+            plots.plot_joints(out / "joints.csv", joints, out / "joints.png")
+        if (out / "tool_wrench.csv").is_file():
+            plots.plot_tool_wrench(out / "tool_wrench.csv", out / "tool_wrench.png")
+        if (out / "soil_mass.csv").is_file():
+            plots.plot_soil_mass(out / "soil_mass.csv", out / "soil_mass.png")
+        if (out / "terrain_initial.npz").is_file() and (out / "terrain_final.npz").is_file():
+            plots.plot_terrain(dict(np.load(out / "terrain_initial.npz")), dict(np.load(out / "terrain_final.npz")),
+                               out / "terrain.png")
+    except Exception as exc:  # a plot must never cost the data
+        print(f"warning: plots not written ({type(exc).__name__}: {exc})", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------------------- resume
+def process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def run_folder_status(run_dir: Path) -> tuple[str, dict]:
+    """('done' | 'running' | 'died' | 'diverged' | ..., manifest): `died` is a manifest that says running whose
+    process is gone (killed, out of memory, power loss)."""
+    path = Path(run_dir) / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"--resume: {run_dir} is not a run folder (no manifest.json)") from None
+    except (OSError, ValueError) as exc:
+        raise UserError(f"--resume: {path}: unreadable manifest ({exc})") from None
+    status = manifest.get("status", "unknown")
+    if status == "running":
+        same_host = manifest.get("host") in (None, socket.gethostname())
+        pid = manifest.get("pid")
+        if not (same_host and isinstance(pid, int) and process_alive(pid)) and same_host:
+            status = "died"
+    return status, manifest
+
+
+def resume_scene(run_dir: Path):
+    """The resolved scene a run folder was started with, to continue it."""
+    from pydantic import ValidationError
+
+    from .scene import Scene
+
+    status, manifest = run_folder_status(run_dir)
+    if status == "running":
+        raise UserError(f"--resume: {run_dir} is still running (pid {manifest.get('pid')} on "
+                        f"{manifest.get('host')}); stop it first")
+    if status == "done":
+        raise UserError(f"--resume: {run_dir} finished already (status done); nothing to resume")
+    ckpt = latest_checkpoint(run_dir)
+    if ckpt is None:
+        raise UserError(f"--resume: {run_dir} ({status}) has no checkpoint to resume from; it was run without "
+                        f"--checkpoint-every")
+    read_checkpoint_header(ckpt)
+    data = dict(manifest["scene"])
+    try:
+        scene = Scene.model_validate(data, context={"base_dir": Path(run_dir).resolve(), "source": None})
+    except ValidationError as exc:
+        raise UserError(f"--resume: {run_dir}/manifest.json: its scene no longer loads "
+                        f"({' '.join(str(exc).split())[:200]})") from None
+    return scene, status, ckpt

@@ -1,0 +1,181 @@
+"""The loop's seams, used from outside the package as a user would: a controller and observers of their own,
+several machines in one scene, several simulations in one process."""
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import opera_taichi as ot
+from opera_taichi.recorders import read_csv_columns
+
+ROOT = Path(__file__).resolve().parent.parent
+DIG_CYCLE = ROOT / "scenes" / "zx120_dig_cycle.yaml"
+BLADE = ROOT / "scenes" / "blade_cut.yaml"
+EXCAVATION = ROOT / "scenes" / "zx120_excavation.yaml"
+
+
+class BoomTo:
+    """A controller of the test's own: the boom to a fixed angle, nothing else commanded."""
+
+    def __init__(self, target):
+        self.target, self.calls = target, 0
+
+    def control(self, sim, t):
+        self.calls += 1
+        return ot.Control({"zx120": ot.MachineControl(q_target={"boom_joint": self.target})}, t, "test")
+
+
+class BoomLog(ot.Observer):
+    rate = 50.0
+
+    def start(self, sim, run):
+        self.t, self.boom, self.status = [], [], None
+
+    def sample(self, sim):
+        q, _, _ = sim.machines["zx120"].joint_states()
+        self.t.append(sim.t)
+        self.boom.append(q[1])
+
+    def close(self, sim, status, message):
+        self.status = status
+
+
+class GatedSink(ot.ThreadedObserver):
+    """A network-like sink whose first publish blocks until the run closes: the simulation must not wait for it."""
+
+    def start(self, sim, run):
+        self.gate, self.samples, self.seen = threading.Event(), 0, []
+        super().start(sim, run)
+
+    def snapshot(self, sim):
+        self.samples += 1
+        return sim.t
+
+    def publish(self, t):
+        self.gate.wait(timeout=120)
+        self.seen.append(t)
+
+    def close(self, sim, status, message):
+        self.final_t = sim.t
+        self.gate.set()
+        super().close(sim, status, message)
+
+
+def test_a_controller_and_observers_from_outside_drive_and_watch_a_run(tmp_path):
+    scene = ot.load_scene(DIG_CYCLE, ["sim.duration=2", "output.plots=false"])
+    controller, log, sink = BoomTo(-0.3), BoomLog(), GatedSink()
+    result = ot.run_scene(scene, out_dir=tmp_path / "run", quiet=True, controller=controller, observers=[log, sink])
+    assert result.status == "done" and log.status == "done"
+    assert controller.calls == 2000                                  # one Control per rigid step
+    assert len(log.t) == 101 and np.allclose(np.diff(log.t), 0.02)   # at its own rate, from t = 0
+    sim_dt = 1e-3
+    speed = np.abs(np.diff(log.boom)) / 0.02
+    from opera_taichi.machine_description import load_machine
+
+    limit = load_machine("zx120").actuators["boom_joint"].max_speed
+    assert speed.max() <= limit * 1.02 + 1e-9                        # through the actuator's speed limit
+    assert abs(log.boom[-1] - (-0.3)) < 0.01                         # and to the target
+    cols = read_csv_columns(tmp_path / "run" / "joints.csv")
+    assert np.all(cols["boom_joint.q_cmd"][1:] == -0.3)              # what was applied is what is recorded
+    assert np.all(np.abs(cols["swing_joint.q"]) < 1e-3)              # the scene's script (a 90 deg swing) is not used
+    # latest wins: the sink saw its first snapshot and, once released, only the newest; the run never waited
+    assert sink.samples == 2001 and sink.seen[-1] == pytest.approx(sink.final_t)
+    assert len(sink.seen) == 2 and sink.skipped == sink.samples - 2
+    assert sim_dt * 2000 == pytest.approx(result.sim_time)
+
+
+def _two_machines(extra=()):
+    lift = {"boom_joint": -46, "arm_joint": 114, "bucket_joint": 46}
+    data = ["machine=null", "motion=null", "sim.duration=3.5", "output.plots=false",
+            "machines=[{name: a, urdf: zx120, initial_joints_deg: %s,"
+            " motion: {type: joint_waypoints, waypoints: [{t: 0, q_deg: {swing_joint: 0}},"
+            " {t: 3, q_deg: {swing_joint: 90}}]}},"
+            " {name: b, urdf: zx120, base_pose: {xyz: [0.0, 4.2, 0.0]}, initial_joints_deg: %s}]"
+            % (lift, lift), *extra]
+    return ot.load_scene(DIG_CYCLE, [d.replace("'", "") for d in data])
+
+
+def test_two_machines_in_one_scene_touch_each_other(tmp_path):
+    """Machine a swings its front toward machine b standing 4.2 m to its left: the two bodies collide in one rigid
+    world, so a's swing stalls against b at its torque limit, short of where it gets alone (b removed)."""
+    with_b = ot.run_scene(_two_machines(), out_dir=tmp_path / "both", quiet=True)
+    alone_scene = _two_machines()
+    alone_scene.machines = alone_scene.machines[:1]
+    alone = ot.run_scene(alone_scene, out_dir=tmp_path / "alone", quiet=True)
+    assert with_b.status == alone.status == "done"
+    both = read_csv_columns(tmp_path / "both" / "joints.csv")
+    solo = read_csv_columns(tmp_path / "alone" / "joints.csv")
+    assert "a.swing_joint.q" in both and "b.swing_joint.q" in both and "swing_joint.q" in solo
+    assert solo["swing_joint.q"][-1] > np.radians(85)                   # alone it swings to the target
+    assert both["a.swing_joint.q"][-1] < np.radians(75)                 # b's front stops it
+    from opera_taichi.machine_description import load_machine
+
+    limit = load_machine("zx120").actuators["swing_joint"].max_torque
+    assert both["a.swing_joint.effort"][-1] == pytest.approx(limit, rel=1e-6)  # pushing with all it has
+    assert np.abs(solo["swing_joint.effort"][-50:]).max() < 0.1 * limit
+
+
+def test_two_machines_dig_the_same_soil(tmp_path):
+    """Both buckets lowered into one bed: each is a tool of the one soil, each is pushed back by it."""
+    lower = ("{type: bucket_tip_path, waypoints: [{t: 0.0, xyz: [6.4, -0.164, 0.6], bucket_angle_deg: 100},"
+             " {t: 1.5, xyz: [6.4, -0.164, -0.3], bucket_angle_deg: 105}]}")
+    scene = _two_machines(["sim.duration=1.5", f"machines.0.motion={lower}", f"machines.1.motion={lower}",
+                           "soil={preset: dirt, overrides: {radius: 0.12}, bed: [{min: [5.4, -1.0, -0.6],"
+                           " max: [7.4, 5.2, 0.0]}], domain: {min: [5.0, -1.4, -0.7], max: [7.8, 5.6, 3.0]}}"])
+    result = ot.run_scene(scene, out_dir=tmp_path / "dig", quiet=True)
+    assert result.status == "done"
+    cols = read_csv_columns(tmp_path / "dig" / "tool_wrench.csv")
+    tools = np.asarray(cols["tool"])
+    assert sorted(set(tools)) == ["a.bucket_link", "b.bucket_link"]
+    for name in ("a.bucket_link", "b.bucket_link"):
+        assert cols["fz"][tools == name].max() > 500.0, name   # each bucket is pushed up by the soil
+    mass = read_csv_columns(tmp_path / "dig" / "soil_mass.csv")["mass_kg"]
+    assert np.all(np.abs(mass - mass[0]) <= 1e-9 * mass[0])
+
+
+def _blade():
+    return ot.Simulation.from_scene(BLADE, {"soil.overrides.radius": 0.04, "tools.0.start.2": 0.2})
+
+
+def _excavator():
+    return ot.Simulation.from_scene(EXCAVATION, {"soil.overrides.radius": 0.16, "motion": None})
+
+
+def _final(sim, steps, control=None):
+    for _ in range(steps):
+        sim.step(control)
+    return sim.get_state()
+
+
+def test_two_simulations_stepped_alternately_give_the_same_results_as_each_alone():
+    steps = 300
+    push = {"boom_joint": 0.2}
+    alone = [_final(_blade(), steps), _final(_excavator(), steps, push)]
+    a, b = _blade(), _excavator()
+    for _ in range(steps):
+        a.step()
+        b.step(push)
+    for single, pair in zip(alone, (a.get_state(), b.get_state())):
+        assert single.t == pair.t
+        for key in single.soil:
+            assert np.array_equal(single.soil[key], pair.soil[key]), key
+        assert np.array_equal(single.tool_wrench, pair.tool_wrench)
+        for name, ms in single.machines.items():
+            assert np.array_equal(ms.q, pair.machines[name].q)
+    assert np.abs(alone[0].tool_wrench).max() > 0  # the blade is cutting: the soils did something
+
+
+def test_get_state_set_state_round_trip_continues_bit_for_bit():
+    sim = _excavator()
+    push = {"boom_joint": 0.3, "arm_joint": 1.2}
+    _final(sim, 200, push)
+    saved = sim.get_state()
+    first = _final(sim, 300, push)
+    sim.set_state(saved)
+    again = _final(sim, 300, push)
+    assert first.t == again.t
+    for key in first.soil:
+        assert np.array_equal(first.soil[key], again.soil[key]), key
+    assert np.array_equal(first.machines["zx120"].q, again.machines["zx120"].q)
+    assert np.array_equal(first.tool_wrench, again.tool_wrench)
