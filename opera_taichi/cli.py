@@ -57,6 +57,22 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_runs(args) -> int:
+    from .runs import format_table, list_runs, write_csv
+
+    folder = Path(args.folder)
+    if not folder.is_dir():
+        raise UserError(f"runs: {folder} is not a folder")
+    rows = list_runs(folder)
+    if args.csv:
+        write_csv(rows, sys.stdout)
+    elif rows:
+        print(format_table(rows))
+    else:
+        print(f"no runs under {folder}", file=sys.stderr)
+    return 0
+
+
 def _cmd_validate_physics(args) -> int:
     from .validation import cases
 
@@ -119,6 +135,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=_cmd_run)
     validate = scene_command("validate", "check a scene (files, keys, joints) without running it")
     validate.set_defaults(handler=_cmd_validate)
+    runs = commands.add_parser("runs", help="list the runs under a folder (status, simulated time, real-time "
+                                            "factor, bucket load, peak force)",
+                               description="List the run folders under DIR (default runs/): name, scene, status "
+                                           "(done, running, died, diverged, ...), simulated time, real-time factor, "
+                                           "bucket load and peak force.")
+    runs.add_argument("folder", metavar="DIR", nargs="?", default="runs", help="folder to search (default runs)")
+    runs.add_argument("--csv", action="store_true", help="CSV on stdout, for scripts")
+    runs.set_defaults(handler=_cmd_runs)
     physics = commands.add_parser(
         "validate-physics", help="run a physics validation case against its analytic reference",
         description="Run a validation case (blade_cut, passive_wall, column_collapse, repose, vertical_cut) and "

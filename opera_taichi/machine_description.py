@@ -26,7 +26,8 @@ DEFAULT_GAIN = 5.0          # 1/s, position-error-to-speed gain when a machine c
 PLACEHOLDER_MASS = 1.0      # kg: a link with geometry lighter than this is a stand-in, not a machine part
 MOVABLE = ("revolute", "continuous", "prismatic")
 PYBULLET_MESH_SUFFIXES = (".obj", ".stl")
-CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joints", "masses", "tracks")
+CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joints", "masses", "tracks",
+               "struck_volume")
 ACTUATOR_KEYS = ("max_speed", "max_torque", "gain")
 TRACK_KEYS = ("wheel_radius", "wheel_mass", "x", "gauge", "friction", "max_wheel_torque")
 
@@ -51,6 +52,7 @@ class MachineDescription:
     collision_meshes: dict[str, trimesh.Trimesh]    # per soil link, in the link frame
     tracks: dict | None
     warnings: list[str] = field(default_factory=list)
+    struck_volume: dict[str, float] = field(default_factory=dict)   # m3 per soil link (a bucket's rated capacity)
 
 
 # ----------------------------------------------------------------------------------------- entry point
@@ -104,7 +106,20 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
     return MachineDescription(
         name=str(cfg.get("name") or robot.name), urdf_path=urdf_path, bullet_urdf_path=bullet_path,
         actuated_joints=actuated, actuators=actuators, joint_limits=limits, tip_link=tip_link,
-        soil_links=soil_links, collision_meshes=collision_meshes, tracks=tracks, warnings=warnings)
+        soil_links=soil_links, collision_meshes=collision_meshes, tracks=tracks, warnings=warnings,
+        struck_volume=_struck_volume(cfg, where, soil_links))
+
+
+def _struck_volume(cfg, where, soil_links) -> dict[str, float]:
+    value = cfg.get("struck_volume") or {}
+    if not isinstance(value, dict):
+        raise UserError(f"{where}: struck_volume must map soil links to volumes in m3")
+    out = {}
+    for link, vol in value.items():
+        if link not in soil_links:
+            raise UserError(f"{where}: struck_volume: {link!r} is not a soil link (soil_links: {', '.join(soil_links)})")
+        out[link] = _positive(vol, f"{where}: struck_volume.{link}")
+    return out
 
 
 # ----------------------------------------------------------------------------------------- files

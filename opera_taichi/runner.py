@@ -141,7 +141,7 @@ def default_observers(scene, sim, manifest: Manifest, quiet: bool, progress) -> 
                 TerrainNpz(scene.output.particles_final)]
     if scene.output.plots:
         out.append(Plots())
-    out += [ProgressBar(progress), manifest]
+    out += [ProgressBar(progress), manifest, Summary(quiet)]
     return out
 
 
@@ -196,7 +196,28 @@ class Plots(Observer):
         self.out = run.out
 
     def close(self, sim, status, message):
-        write_plots(self.out, joint_columns(sim), _limits(sim))
+        density = sim.model.soil.bulk.density if sim.model.soil is not None else None
+        write_plots(self.out, joint_columns(sim), _limits(sim), density)
+
+
+class Summary(Observer):
+    """summary.json when the run ends (soil in each tool, dug and heaped volume, forces, actuator saturation,
+    real-time factor, mass balance), printed unless quiet."""
+
+    rate = 1e-9
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+
+    def start(self, sim, run):
+        self.out = run.out
+
+    def close(self, sim, status, message):
+        from .summary import format_summary, write_summary
+
+        summary = write_summary(self.out, sim.model)
+        if not self.quiet:
+            print(format_summary(summary))
 
 
 def _limits(sim) -> dict:
@@ -312,16 +333,16 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
                      int(sim.soil.n_particles) if sim.soil is not None else 0, message)
 
 
-def write_plots(out: Path, joints, limits=None) -> None:
+def write_plots(out: Path, joints, limits=None, density=None) -> None:
     from . import plots
 
     try:
         if (out / "joints.csv").is_file() and joints:
-            plots.plot_joints(out / "joints.csv", joints, out / "joints.png")
+            plots.plot_joints(out / "joints.csv", joints, out / "joints.png", limits=limits)
         if (out / "tool_wrench.csv").is_file():
             plots.plot_tool_wrench(out / "tool_wrench.csv", out / "tool_wrench.png")
         if (out / "soil_mass.csv").is_file():
-            plots.plot_soil_mass(out / "soil_mass.csv", out / "soil_mass.png")
+            plots.plot_soil_mass(out / "soil_mass.csv", out / "soil_mass.png", density=density)
         if (out / "terrain_initial.npz").is_file() and (out / "terrain_final.npz").is_file():
             plots.plot_terrain(dict(np.load(out / "terrain_initial.npz")), dict(np.load(out / "terrain_final.npz")),
                                out / "terrain.png")

@@ -55,6 +55,7 @@ def test_struck_volume_of_the_zx120_bucket():
     bucket = load_machine("zx120").collision_meshes["bucket_link"]
     v = struck_volume(bucket)
     assert 0.3 < v < 0.45
+    assert load_machine("zx120").struck_volume["bucket_link"] == pytest.approx(v, abs=0.005)  # machine.yaml's figure
     assert v < bucket.convex_hull.volume - bucket.volume
 
 

@@ -13,8 +13,11 @@ from opera_taichi.kinematics import Kinematics
 from opera_taichi.machine_description import load_machine, mass_properties
 from opera_taichi.paths import machines_dir
 
-OPERA_URDF = Path("/work/shared/opera/zx120_description/urdf/zx120.urdf")
-needs_opera = pytest.mark.skipif(not OPERA_URDF.is_file(), reason="OPERA's zx120_description is not on this machine")
+from conftest import ON_CI, SHARED
+
+OPERA_URDF = SHARED / "opera" / "zx120_description" / "urdf" / "zx120.urdf"
+needs_opera = pytest.mark.skipif(not OPERA_URDF.is_file() and not ON_CI,
+                                 reason="OPERA's zx120_description is not in ../shared (OPERA_TAICHI_SHARED)")
 MASSES = {"track_link": 3816, "body_link": 6514, "boom_link": 992, "arm_link": 392, "bucket_link": 386}
 
 

@@ -8,9 +8,11 @@ import pytest
 from opera_taichi.kinematics import Kinematics
 from opera_taichi.machine_description import load_machine
 
-OPERA_URDF = Path("/work/shared/opera/zx120_description/urdf/zx120.urdf")
+from conftest import ON_CI, SHARED
+
+OPERA_URDF = SHARED / "opera" / "zx120_description" / "urdf" / "zx120.urdf"
 MACHINES = ["zx120", pytest.param(OPERA_URDF, marks=pytest.mark.skipif(
-    not OPERA_URDF.is_file(), reason="OPERA's zx120_description is not on this machine"))]
+    not OPERA_URDF.is_file() and not ON_CI, reason="OPERA's zx120_description is not in ../shared (OPERA_TAICHI_SHARED)"))]
 PHYSX_POSE = {"boom_joint": math.radians(-46), "arm_joint": math.radians(114), "bucket_joint": math.radians(46)}
 ARM_JOINTS = ["boom_joint", "arm_joint", "bucket_joint"]
 
