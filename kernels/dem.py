@@ -17,8 +17,10 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
                 static faces: a particle moves at most skin/2 before the next build, so one whose clearance then
                 exceeded r + skin/2 cannot touch a face and skips the face search
   surf_id[n, 5] i32        columns 0-3: static face held by each wall-contact slot (-1 free); column 4 (TOOL_BITS):
-                bit t set while tool t's slot may hold a spring, so a particle away from every tool does not
-                read its tool slots each substep (a cache line per particle)
+                bits 0-3: bit t set while tool t's slot may hold a spring, so a particle away from every tool does
+                not read its tool slots each substep (a cache line per particle); bit 4 (WAKE_BIT): a moving
+                neighbour asked a sleeping particle to wake; bits 8-30: how many substeps in a row the particle
+                has been quiet (CALM_SHIFT; asleep from P_SLEEP_STEPS on)
   surf_h[n, 8]  vec6 f32   history: slots 0-3 static faces, 4-7 tools; (tangential spring, rolling spring)
   nbr_off[n+1], nbr_j[E], nbr_h[E] vec6 f32  half neighbour list in CSR form (each pair once, held by one of
                 the two, i: entries nbr_off[i]..nbr_off[i+1]) and each pair's springs (seen from i)
@@ -48,7 +50,11 @@ MAX_TOOLS = 4
 MAX_PITS = 16
 WALL_SLOTS = 4
 SURF_SLOTS = WALL_SLOTS + MAX_TOOLS
-TOOL_BITS = WALL_SLOTS        # surf_id column of the tool-spring bits
+TOOL_BITS = WALL_SLOTS        # surf_id column of the tool-spring bits, the wake request and the calm counter
+TOOL_MASK = (1 << MAX_TOOLS) - 1
+WAKE_BIT = 1 << MAX_TOOLS
+CALM_SHIFT = 8
+CALM_MAX = (1 << 22) - 1
 SURF_ID_WIDTH = WALL_SLOTS + 1
 BLOCK = 64  # particles per reduction block: sums per block, then added in block order
 # The step kernel's blocks: Taichi's CPU backend cuts a parallel loop into one chunk per thread of at least 512
@@ -92,6 +98,13 @@ P_SQRT_KTOOL = 26
 P_WALL_TOP = 27   # top of the pit walls: 0 (the ground), raised while a bed is poured so nothing spills
 P_ADH_F = 28      # soil-tool adhesion: attraction at contact and added tangential capacity, N
 P_ADH_D = 29      # adhesion range beyond contact, m
+# Sleeping: a particle quiet (speed and r x spin below sqrt(P_SLEEP_V2), no tool contact) for P_SLEEP_STEPS substeps
+# in a row sleeps: it is neither integrated nor are its pairs with other sleepers evaluated (their springs keep
+# their values: neither side moves). It wakes when a tool comes within r + skin of it, or when a touching neighbour
+# moves faster than WAKE_FACTOR x the quiet speed. P_SLEEP_STEPS 0: nothing sleeps (the default).
+P_SLEEP_STEPS = 30
+P_SLEEP_V2 = 31
+WAKE_FACTOR2 = 4.0
 P_PITS = 32       # pits: 6 entries each (min xyz, max xyz), MAX_PITS of them
 N_PRM = P_PITS + 6 * MAX_PITS
 
@@ -214,7 +227,7 @@ def cohesion_force(gap, prm: ti.template()):
 # ----------------------------------------------------------------------------------------------- pair forces
 @ti.kernel
 def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, prm: F64_1, dt: ti.f64):
+                rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, surf_id: I32_2, prm: F64_1, dt: ti.f64):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -222,12 +235,19 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
     cheaper than scattered loads). No atomics: deterministic for a given thread count, and j gets exactly
     minus i's force (momentum is conserved to round-off).
     """
+    sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
+    wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
     for i in range(n_act):
         x_i = kin[i, 0]
         v_i = kin[i, 1]
         w_i = kin[i, 2]
         p_i = prop[i]
         r_i = p_i[0]
+        asleep_i = False
+        fast_i = False
+        if sleep_steps > 0:
+            asleep_i = (surf_id[i, TOOL_BITS] >> CALM_SHIFT) >= sleep_steps
+            fast_i = v_i.dot(v_i) > wake_v2
         reach_extra = prm[P_COH_D]
         k = prm[P_KN]
         sqrt_k = prm[P_SQRT_KN]
@@ -237,6 +257,19 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
         t = vec3(0.0)
         for e in range(nbr_off[i], nbr_off[i + 1]):
             j = nbr_j[e]
+            if sleep_steps > 0:
+                asleep_j = (surf_id[j, TOOL_BITS] >> CALM_SHIFT) >= sleep_steps
+                if asleep_i and asleep_j:
+                    continue  # neither moves: the pair's force is not needed and its springs keep their values
+                if asleep_i != asleep_j:
+                    v_j = kin[j, 1]
+                    d_ij = x_i - kin[j, 0]
+                    reach_ij = r_i + prop[j][0] + prm[P_COH_D]
+                    if d_ij.dot(d_ij) < reach_ij * reach_ij:
+                        if asleep_j and fast_i:
+                            ti.atomic_or(surf_id[j, TOOL_BITS], WAKE_BIT)
+                        if asleep_i and v_j.dot(v_j) > wake_v2:
+                            ti.atomic_or(surf_id[i, TOOL_BITS], WAKE_BIT)
             dx = x_i - kin[j, 0]
             d2 = dx.dot(dx)
             p_j = prop[j]
@@ -465,6 +498,7 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
     lists).
     """
     stat[S_DISP2] = 0.0
+    sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     n_blocks = (n_act + block - 1) // block
     for blk in range(n_blocks):
         disp2_max = ti.f64(0.0)
@@ -475,147 +509,173 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
         tool_sum = ti.Matrix.zero(ti.f64, MAX_TOOLS, 6)
         for i in range(blk * block, ti.min(n_act, (blk + 1) * block)):
             if flags[i] == 1:  # (all of 0..n_act are active: a deactivation triggers a rebuild at once)
-                x = kin[i, 0]
-                v = kin[i, 1]
-                w = kin[i, 2]
-                p = prop[i]
-                r = p[0]
-                m = p[1]
-                q2 = p[3] * p[3]  # sqrt(m): the effective mass against ground, walls and tools is m
-                force = own[i, 0]
-                torque = own[i, 1]
-                for q in range(rev_off[i], rev_off[i + 1]):  # what the pairs held by others put on i
-                    force += ti.cast(pair_out[q, 0], ti.f64)
-                    torque += ti.cast(pair_out[q, 1], ti.f64)
-                force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
-                buried = False
-                # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
-                ids = ti.Vector([surf_id[i, 0], surf_id[i, 1], surf_id[i, 2], surf_id[i, 3]])
-                ref = x_ref[i]
-                pit = -1
-                near = ids.max() >= 0
-                if not near and ref[3] < r + prm[P_SKIN]:  # most particles are far from every face
-                    pit = _pit_of(x, prm)
-                    near = _clearance(x, pit, prm) < r
-                elif near:
-                    pit = _pit_of(x, prm)
-                if near:
-                    touched = ti.Vector([0, 0, 0, 0])
-                    n_faces = 5
-                    if pit >= 0:
-                        n_faces += FACES_PER_PIT
-                    for q in range(n_faces):  # domain walls, ground, then the faces of this particle's pit
-                        fid = q if q < 5 else q + FACES_PER_PIT * pit
-                        overlap = ti.f64(-1.0)
-                        n = vec3(0.0)
-                        out = False
-                        if _face_plane_distance(fid, pit, x, prm) < r:  # cheap test first: most faces are far
-                            overlap, n, out = _face(fid, pit, x, r, prm)
-                        if out:
-                            buried = True
-                        if overlap > 0.0 and not out:
-                            slot = _find_slot(ids, fid)
-                            hist = vec6f(0.0)
-                            if slot >= 0:
-                                hist = surf_h[i, slot]
-                            lever = -r * n
-                            sqrt_k = prm[P_SQRT_KWALL]
-                            # domain walls are symmetry planes (the soil beyond them would shear with it):
-                            # smooth, so a narrow slice or a bed cut by the domain is not held up by them;
-                            # the ground and pit faces are rough
-                            mu_face = prm[P_MU_WALL]
-                            mu_r_face = prm[P_MU_R]
-                            if fid < 4:
-                                mu_face = 0.0
-                                mu_r_face = 0.0
-                            f_c, f_t, m_r, h_new = contact_law(n, overlap, v + w.cross(lever), w, q2 * sqrt_k,
-                                                               ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r, hist,
-                                                               prm[P_K_WALL], mu_face, mu_r_face, prm, dt)
-                            force += f_c
-                            torque += lever.cross(f_t) + m_r
-                            if slot >= 0:
-                                ids[slot] = fid
-                                touched[slot] = 1
-                                surf_h[i, slot] = h_new
-                    for s in ti.static(range(WALL_SLOTS)):
-                        if touched[s] == 0 and ids[s] >= 0:
-                            surf_h[i, s] = vec6f(0.0)
-                            ids[s] = -1
-                        surf_id[i, s] = ids[s]
-                # kinematic tools: SDF in the link frame, the reaction summed per tool
-                bits_in = surf_id[i, TOOL_BITS]
-                tool_bits = bits_in
-                for t in range(MAX_TOOLS):
-                    if tools[t, T_ON] > 0.0:
-                        rot = _tool_rotation(tools, t)
-                        origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
-                        sample = sample_sdf(sdf, tools, t, rot.transpose() @ (x - origin))
-                        hit = False
-                        # contact (gap < 0), or within the adhesion band beyond it (P_ADH_D: 0 without adhesion)
-                        if sample[0] < r + prm[P_ADH_D]:
-                            g_world = rot @ vec3(sample[1], sample[2], sample[3])
-                            g_norm = g_world.norm()
-                            if g_norm > 1e-12:
-                                n = g_world / g_norm
-                                lever = -r * n
-                                x_c = x + lever
-                                f_c = vec3(0.0)
-                                if sample[0] < r:
-                                    hit = True
-                                    w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
-                                    v_tool = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]) + \
-                                        w_tool.cross(x_c - origin)
-                                    # adhesion: the tool holds the particle by attraction (below) and resists
-                                    # its sliding by P_ADH_F more than friction does (soil.bulk_to_micro)
-                                    sqrt_k = prm[P_SQRT_KTOOL]
-                                    f_c, f_t, m_r, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
-                                                                       w - w_tool, q2 * sqrt_k,
-                                                                       ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r,
-                                                                       surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
-                                                                       prm[P_MU_TOOL], prm[P_MU_R], prm, dt,
-                                                                       prm[P_ADH_F])
-                                    torque += lever.cross(f_t) + m_r
-                                    surf_h[i, WALL_SLOTS + t] = h_new
-                                    tool_bits |= 1 << t
-                                if prm[P_ADH_F] > 0.0:
-                                    f_c -= band_attraction(sample[0] - r, prm[P_ADH_F], prm[P_ADH_D]) * n
-                                force += f_c
-                                arm = x_c - origin
-                                on_tool = -f_c
-                                moment = arm.cross(on_tool)
-                                for c in ti.static(range(3)):
-                                    tool_sum[t, c] += on_tool[c]
-                                    tool_sum[t, 3 + c] += moment[c]
-                        if not hit and ((tool_bits >> t) & 1) == 1:
-                            surf_h[i, WALL_SLOTS + t] = vec6f(0.0)
-                            tool_bits &= ~(1 << t)
-                if tool_bits != bits_in:
-                    surf_id[i, TOOL_BITS] = tool_bits
-                if x[2] > prm[P_DMAX + 2]:
-                    buried = True
-                if buried:
-                    # left the domain (or tunnelled into the ground): book the mass, drop the particle
-                    flags[i] = 0
-                    kin[i, 1] = vec3(0.0)
-                    kin[i, 2] = vec3(0.0)
-                    lost_mass += m
-                    lost_count += 1.0
-                    disp2_max = HUGE
+                word = surf_id[i, TOOL_BITS]
+                if sleep_steps > 0 and (word >> CALM_SHIFT) >= sleep_steps:
+                    # asleep: no forces, no integration; wake on a neighbour's request or a tool within r + skin,
+                    # integrated again from the next substep (its pairs are evaluated again from then on)
+                    woken = (word & WAKE_BIT) != 0
+                    if not woken:
+                        x_s = kin[i, 0]
+                        reach = prop[i][0] + prm[P_SKIN] + prm[P_ADH_D]
+                        for t in range(MAX_TOOLS):
+                            if tools[t, T_ON] > 0.0:
+                                origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
+                                rot = _tool_rotation(tools, t)
+                                if sample_sdf(sdf, tools, t, rot.transpose() @ (x_s - origin))[0] < reach:
+                                    woken = True
+                    if woken:
+                        surf_id[i, TOOL_BITS] = word & TOOL_MASK
                 else:
-                    damp = 1.0 / (1.0 + bulk_damping * dt)
-                    v = (v + force * (p[2] * dt)) * damp
-                    w = (w + torque * (2.5 * p[2] / (r * r) * dt)) * damp  # I = 2/5 m r^2
-                    x += v * dt
-                    kin[i, 0] = x
-                    kin[i, 1] = v
-                    kin[i, 2] = w
-                    dx = x - vec3(ref[0], ref[1], ref[2])
-                    speed2 = v.dot(v)
-                    if not (speed2 < HUGE and dx.dot(dx) < HUGE):  # NaN fails every comparison
-                        nonfinite += 1.0
+                    x = kin[i, 0]
+                    v = kin[i, 1]
+                    w = kin[i, 2]
+                    p = prop[i]
+                    r = p[0]
+                    m = p[1]
+                    q2 = p[3] * p[3]  # sqrt(m): the effective mass against ground, walls and tools is m
+                    force = own[i, 0]
+                    torque = own[i, 1]
+                    for q in range(rev_off[i], rev_off[i + 1]):  # what the pairs held by others put on i
+                        force += ti.cast(pair_out[q, 0], ti.f64)
+                        torque += ti.cast(pair_out[q, 1], ti.f64)
+                    force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
+                    buried = False
+                    # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
+                    ids = ti.Vector([surf_id[i, 0], surf_id[i, 1], surf_id[i, 2], surf_id[i, 3]])
+                    ref = x_ref[i]
+                    pit = -1
+                    near = ids.max() >= 0
+                    if not near and ref[3] < r + prm[P_SKIN]:  # most particles are far from every face
+                        pit = _pit_of(x, prm)
+                        near = _clearance(x, pit, prm) < r
+                    elif near:
+                        pit = _pit_of(x, prm)
+                    if near:
+                        touched = ti.Vector([0, 0, 0, 0])
+                        n_faces = 5
+                        if pit >= 0:
+                            n_faces += FACES_PER_PIT
+                        for q in range(n_faces):  # domain walls, ground, then the faces of this particle's pit
+                            fid = q if q < 5 else q + FACES_PER_PIT * pit
+                            overlap = ti.f64(-1.0)
+                            n = vec3(0.0)
+                            out = False
+                            if _face_plane_distance(fid, pit, x, prm) < r:  # cheap test first: most faces are far
+                                overlap, n, out = _face(fid, pit, x, r, prm)
+                            if out:
+                                buried = True
+                            if overlap > 0.0 and not out:
+                                slot = _find_slot(ids, fid)
+                                hist = vec6f(0.0)
+                                if slot >= 0:
+                                    hist = surf_h[i, slot]
+                                lever = -r * n
+                                sqrt_k = prm[P_SQRT_KWALL]
+                                # domain walls are symmetry planes (the soil beyond them would shear with it):
+                                # smooth, so a narrow slice or a bed cut by the domain is not held up by them;
+                                # the ground and pit faces are rough
+                                mu_face = prm[P_MU_WALL]
+                                mu_r_face = prm[P_MU_R]
+                                if fid < 4:
+                                    mu_face = 0.0
+                                    mu_r_face = 0.0
+                                f_c, f_t, m_r, h_new = contact_law(n, overlap, v + w.cross(lever), w, q2 * sqrt_k,
+                                                                   ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r, hist,
+                                                                   prm[P_K_WALL], mu_face, mu_r_face, prm, dt)
+                                force += f_c
+                                torque += lever.cross(f_t) + m_r
+                                if slot >= 0:
+                                    ids[slot] = fid
+                                    touched[slot] = 1
+                                    surf_h[i, slot] = h_new
+                        for s in ti.static(range(WALL_SLOTS)):
+                            if touched[s] == 0 and ids[s] >= 0:
+                                surf_h[i, s] = vec6f(0.0)
+                                ids[s] = -1
+                            surf_id[i, s] = ids[s]
+                    # kinematic tools: SDF in the link frame, the reaction summed per tool
+                    bits_in = surf_id[i, TOOL_BITS]
+                    tool_bits = bits_in
+                    for t in range(MAX_TOOLS):
+                        if tools[t, T_ON] > 0.0:
+                            rot = _tool_rotation(tools, t)
+                            origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
+                            sample = sample_sdf(sdf, tools, t, rot.transpose() @ (x - origin))
+                            hit = False
+                            # contact (gap < 0), or within the adhesion band beyond it (P_ADH_D: 0 without adhesion)
+                            if sample[0] < r + prm[P_ADH_D]:
+                                g_world = rot @ vec3(sample[1], sample[2], sample[3])
+                                g_norm = g_world.norm()
+                                if g_norm > 1e-12:
+                                    n = g_world / g_norm
+                                    lever = -r * n
+                                    x_c = x + lever
+                                    f_c = vec3(0.0)
+                                    if sample[0] < r:
+                                        hit = True
+                                        w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
+                                        v_tool = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]) + \
+                                            w_tool.cross(x_c - origin)
+                                        # adhesion: the tool holds the particle by attraction (below) and resists
+                                        # its sliding by P_ADH_F more than friction does (soil.bulk_to_micro)
+                                        sqrt_k = prm[P_SQRT_KTOOL]
+                                        f_c, f_t, m_r, h_new = contact_law(n, r - sample[0], v + w.cross(lever) - v_tool,
+                                                                           w - w_tool, q2 * sqrt_k,
+                                                                           ti.f64(SQRT_TWO_FIFTHS) * q2 * r * sqrt_k, r,
+                                                                           surf_h[i, WALL_SLOTS + t], prm[P_K_TOOL],
+                                                                           prm[P_MU_TOOL], prm[P_MU_R], prm, dt,
+                                                                           prm[P_ADH_F])
+                                        torque += lever.cross(f_t) + m_r
+                                        surf_h[i, WALL_SLOTS + t] = h_new
+                                        tool_bits |= 1 << t
+                                    if prm[P_ADH_F] > 0.0:
+                                        f_c -= band_attraction(sample[0] - r, prm[P_ADH_F], prm[P_ADH_D]) * n
+                                    force += f_c
+                                    arm = x_c - origin
+                                    on_tool = -f_c
+                                    moment = arm.cross(on_tool)
+                                    for c in ti.static(range(3)):
+                                        tool_sum[t, c] += on_tool[c]
+                                        tool_sum[t, 3 + c] += moment[c]
+                            if not hit and ((tool_bits >> t) & 1) == 1:
+                                surf_h[i, WALL_SLOTS + t] = vec6f(0.0)
+                                tool_bits &= ~(1 << t)
+                    if x[2] > prm[P_DMAX + 2]:
+                        buried = True
+                    if buried:
+                        # left the domain (or tunnelled into the ground): book the mass, drop the particle
+                        flags[i] = 0
+                        kin[i, 1] = vec3(0.0)
+                        kin[i, 2] = vec3(0.0)
+                        lost_mass += m
+                        lost_count += 1.0
+                        disp2_max = HUGE
                     else:
-                        disp2_max = ti.max(disp2_max, dx.dot(dx))
-                        speed2_max = ti.max(speed2_max, speed2)
+                        damp = 1.0 / (1.0 + bulk_damping * dt)
+                        v = (v + force * (p[2] * dt)) * damp
+                        w = (w + torque * (2.5 * p[2] / (r * r) * dt)) * damp  # I = 2/5 m r^2
+                        x += v * dt
+                        kin[i, 0] = x
+                        kin[i, 1] = v
+                        kin[i, 2] = w
+                        dx = x - vec3(ref[0], ref[1], ref[2])
+                        speed2 = v.dot(v)
+                        if not (speed2 < HUGE and dx.dot(dx) < HUGE):  # NaN fails every comparison
+                            nonfinite += 1.0
+                        else:
+                            disp2_max = ti.max(disp2_max, dx.dot(dx))
+                            speed2_max = ti.max(speed2_max, speed2)
+                        if sleep_steps > 0:
+                            calm = 0
+                            if (tool_bits & TOOL_MASK) == 0 and speed2 < prm[P_SLEEP_V2] and \
+                                    w.dot(w) * r * r < prm[P_SLEEP_V2]:
+                                calm = ti.min((tool_bits >> CALM_SHIFT) + 1, CALM_MAX)
+                                if calm >= sleep_steps:  # falls asleep at rest
+                                    kin[i, 1] = vec3(0.0)
+                                    kin[i, 2] = vec3(0.0)
+                            tool_bits = (tool_bits & TOOL_MASK) | (calm << CALM_SHIFT)
+                    if tool_bits != bits_in:
+                        surf_id[i, TOOL_BITS] = tool_bits
         ti.atomic_max(stat[S_DISP2], disp2_max)
         ti.atomic_max(stat[S_SPEED2], speed2_max)
         for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):

@@ -34,6 +34,8 @@ SOLVER_VERSION = 14
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
+SLEEP_AFTER = 0.05         # s a particle must stay quiet before it sleeps (soil.sleep)
+SLEEP_SPEED = 0.02         # x sqrt(g R): the quiet speed (what a settled bed counts as at rest)
 POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
 # Beds are poured with the soil's own friction and rolling resistance (smooth pit walls, no cohesion): a loose,
 # as-deposited packing whose strength is near the critical state. A frictionless pour packs densely (~0.6) and
@@ -137,7 +139,8 @@ def _substep_graph():
     return _GRAPH["graph"]
 
 
-_PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "pair_out", "own", "prm", "dt")
+_PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "pair_out", "own", "surf_id", "prm",
+              "dt")
 _STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "pair_out", "surf_id", "surf_h",
               "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping", "block")
 
@@ -152,8 +155,10 @@ class DemSoil:
     def __init__(self, micro: SoilMicro, *, domain_min, domain_max, beds: list[tuple[tuple, tuple]],
                  seed: int = 0, dt: float | None = None, max_speed: float = 30.0, settle_time: float = 1.0,
                  use_cache: bool = True, gravity=(0.0, 0.0, -GRAVITY), skin: float | None = None,
-                 on_settle=None):
+                 on_settle=None, sleep: bool = False, surface=None):
         self.micro = micro
+        self.surface = surface  # (x, y, z[ix, iy]): fill beds to this surface instead of level (soil.terrain)
+        self.sleep = bool(sleep)
         self._on_settle = on_settle
         self.r_max = micro.radius * (1.0 + micro.polydispersity)
         self.domain_min, self.domain_max = _check_domain(domain_min, domain_max)
@@ -196,9 +201,9 @@ class DemSoil:
     def map_parameters(cls, soil_cfg):
         """(SoilBulk, SoilMicro) of a scene's soil section: the preset with its overrides and the bulk-to-micro
         mapping (soil.py) for the deepest bed."""
-        from .soil import bulk_to_micro, resolve_soil
+        from .soil import bulk_to_micro, resolve_scene_soil
 
-        bulk = resolve_soil(soil_cfg.preset, dict(soil_cfg.overrides or {}))
+        bulk = resolve_scene_soil(soil_cfg)  # preset, preset file, overrides
         bed_depth = max((-float(b.min[2]) for b in soil_cfg.bed), default=1.0)
         return bulk, bulk_to_micro(bulk, bed_depth=max(bed_depth, 4 * bulk.radius))
 
@@ -209,7 +214,8 @@ class DemSoil:
         on_settle(simulated_s, of_at_most_s) is called as a bed settles (progress)."""
         self = cls(soil.params, domain_min=soil.domain_min, domain_max=soil.domain_max,
                    beds=[b for b in soil.beds] if build_beds else [], seed=soil.seed, dt=soil.dt,
-                   max_speed=soil.max_speed, settle_time=soil.settle_time, on_settle=on_settle)
+                   max_speed=soil.max_speed, settle_time=soil.settle_time, on_settle=on_settle,
+                   sleep=getattr(soil, "sleep", False), surface=getattr(soil, "surface", None))
         if not build_beds:  # the kernels still need the pits as static geometry
             self.beds = _check_beds(list(soil.beds), self.domain_min, self.domain_max, self.r_max)
             self._prm.from_numpy(self._parameters())
@@ -260,7 +266,7 @@ class DemSoil:
     def describe(self) -> dict:
         """The manifest's soil block: solver, parameters, the settled bed's packing."""
         packing = self.bed_packing
-        return {"solver": self.name, "solver_version": self.version, "micro": asdict(self.micro),
+        return {"solver": self.name, "solver_version": self.version, "sleep": self.sleep, "micro": asdict(self.micro),
                 "bed_packing": packing, "soil_dt": self.dt,
                 "solid_density_effective": self.micro.bulk_density / packing if packing else None}
 
@@ -333,6 +339,9 @@ class DemSoil:
         prm[dem.P_SQRT_KN] = math.sqrt(m.k_n)
         prm[dem.P_SQRT_KWALL] = math.sqrt(m.k_wall)
         prm[dem.P_SQRT_KTOOL] = math.sqrt(m.k_tool)
+        if self.sleep:  # quiet: below the speed a settled bed counts as at rest, for SLEEP_AFTER of simulated time
+            prm[dem.P_SLEEP_STEPS] = max(1, int(round(SLEEP_AFTER / self.dt)))
+            prm[dem.P_SLEEP_V2] = (SLEEP_SPEED * math.sqrt(GRAVITY * m.radius)) ** 2
         for k, (b_min, b_max) in enumerate(self.beds):
             prm[dem.P_PITS + 6 * k:dem.P_PITS + 6 * k + 6] = np.concatenate([b_min, b_max])
         return prm
@@ -398,6 +407,38 @@ class DemSoil:
         self._stat.fill(0.0)
         self._rebuild()
 
+    def add_particles(self, positions, velocities=None, radii=None) -> None:
+        """Add particles (masses from the solid density of the settled beds) and keep every existing particle's
+        state and contact history, sleep included; the new ones start awake, without contacts."""
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        k = len(pos)
+        vel = np.zeros((k, 3)) if velocities is None else np.asarray(velocities, dtype=np.float64).reshape(k, 3)
+        rad = np.full(k, self.micro.radius) if radii is None else np.asarray(radii, dtype=np.float64).reshape(k)
+        if k and (not np.all(rad > 0) or rad.max() > self.r_max * (1 + 1e-9)):
+            raise ValueError(f"radii must lie in (0, {self.r_max:g}] (the soil's largest radius)")
+        st = self.get_state()
+        n, n_act, e = (int(v) for v in st["counters"])
+        if n != n_act:
+            self._rebuild()  # drop the particles that left the domain first, so the active ones come first
+            st = self.get_state()
+            n, n_act, e = (int(v) for v in st["counters"])
+        prop = st["prop"]
+        scale = prop[0, 1] / (self.micro.solid_density * 4.0 / 3.0 * math.pi * prop[0, 0] ** 3) if n else 1.0
+        mass = scale * self.micro.solid_density * 4.0 / 3.0 * math.pi * rad ** 3
+        st["kin"] = np.concatenate([st["kin"], np.stack([pos, vel, np.zeros((k, 3))], axis=1)])
+        st["prop"] = np.concatenate([prop, np.stack([rad, mass, 1.0 / mass, mass ** 0.25], axis=1)])
+        st["flags"] = np.concatenate([st["flags"], np.ones(k, st["flags"].dtype)])
+        st["x_ref"] = np.concatenate([st["x_ref"], np.concatenate([pos, np.zeros((k, 1))], axis=1)])
+        free = np.full((k, dem.SURF_ID_WIDTH), -1, st["surf_id"].dtype)
+        free[:, dem.TOOL_BITS] = 0
+        st["surf_id"] = np.concatenate([st["surf_id"], free])
+        st["surf_h"] = np.concatenate([st["surf_h"], np.zeros((k,) + st["surf_h"].shape[1:], st["surf_h"].dtype)])
+        for name in ("nbr_off", "rev_off"):
+            st[name] = np.concatenate([st[name], np.full(k, st[name][-1], st[name].dtype)])
+        st["counters"] = np.array([n + k, n_act + k, e], dtype=np.int64)
+        self.set_state(st)
+        self._rebuild()  # the new particles' pairs
+
     def _rebuild(self) -> None:
         """Sort particles by cell, drop inactive ones to the end, rebuild the neighbour lists (history kept)."""
         n = self._n
@@ -442,6 +483,9 @@ class DemSoil:
         spec = dict(version=SOLVER_VERSION, micro=micro, beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
                     domain=(self.domain_min.tolist(), self.domain_max.tolist()), seed=self.seed, dt=self.dt,
                     gravity=self.gravity.tolist(), settle_time=settle_time, frictionless=POUR_FRICTIONLESS)
+        if self.surface is not None:  # a bed filled to a scanned surface: keyed by that surface
+            spec["surface"] = hashlib.sha256(b"".join(np.ascontiguousarray(a, np.float64).tobytes()
+                                                      for a in self.surface)).hexdigest()
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:32]
 
     def _build_beds(self, settle_time: float) -> None:
@@ -478,7 +522,8 @@ class DemSoil:
             inner_lo = b_min + r_max * 1.02
             inner_hi = b_max - r_max * 1.02
             nx, ny = (np.floor((inner_hi[:2] - inner_lo[:2]) / s).astype(int) + 1)
-            target = 0.66 * np.prod(b_max - b_min) / v_mean  # settles at ~0.6: fill ~10% over, trim later
+            # settles at ~0.6: fill ~10% over, trim later (to the bed's top, or its scanned surface: up to its highest)
+            target = 0.66 * np.prod((b_max - b_min)[:2]) * (self._highest_top(b_min, b_max) - b_min[2]) / v_mean
             layers = int(math.ceil(target / (nx * ny)))
             top = inner_lo[2] + (layers - 1) * s
             if top > self.domain_max[2] - r_max:
@@ -512,6 +557,7 @@ class DemSoil:
         else:
             loose[[dem.P_MU_WALL, dem.P_COH_F]] = 0.0
         loose[dem.P_WALL_TOP] = 1e30
+        loose[dem.P_SLEEP_STEPS] = 0.0  # the bed settles awake: a cached bed does not depend on soil.sleep
         self._prm.from_numpy(loose)
         self._run_until_quiet(max(0.6 * settle_time, 2.0 * t_fall), t_fall, quiet, SETTLE_DAMPING)  # it must land
         # friction on (the slow creep of a frictionless packing stops), then level the beds and let them rest
@@ -520,7 +566,7 @@ class DemSoil:
         self._prm.from_numpy(loose)
         self._run_until_quiet(max(0.2 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
         self._match_bulk_density()  # before the rest of the settling, so the bed rests under its final weight
-        self._prm.from_numpy(self._parameters())
+        self._prm.from_numpy(self._settle_parameters())
         self._trim_to_beds()
         # a loose (friction-poured) bed keeps creeping for a while after levelling: rest it until quiet
         self._run_until_quiet(max(0.5 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
@@ -531,6 +577,12 @@ class DemSoil:
         self._stat.fill(0.0)
         self.time = 0.0
         self._rebuild()  # sorted for the final positions: a reload (which rebuilds) gets the same order
+        self._prm.from_numpy(self._parameters())
+
+    def _settle_parameters(self) -> np.ndarray:
+        prm = self._parameters()
+        prm[dem.P_SLEEP_STEPS] = 0.0
+        return prm
 
     def _run_until_quiet(self, limit: float, at_least: float, quiet: float, damping: float) -> None:
         chunk = max(1, int(round(0.01 / self.dt)))
@@ -553,8 +605,9 @@ class DemSoil:
         inside = np.zeros(len(pos), bool)
         volume = 0.0
         for b_min, b_max in self.beds:
-            inside |= np.all((pos >= b_min) & (pos <= b_max), axis=1)
-            volume += float(np.prod(b_max - b_min))
+            in_plan = np.all((pos[:, :2] >= b_min[:2]) & (pos[:, :2] <= b_max[:2]), axis=1)
+            inside |= in_plan & (pos[:, 2] >= b_min[2]) & (pos[:, 2] <= self._tops(pos[:, :2], b_max))
+            volume += self._bed_volume(b_min, b_max)
         solid = float(np.sum(4.0 / 3.0 * math.pi * radii[inside & (flags == 1)] ** 3))
         return solid / volume if solid > 0.0 and volume > 0.0 else None
 
@@ -581,15 +634,39 @@ class DemSoil:
         prop[:, 3] = prop[:, 1] ** 0.25
         self._prop.from_numpy(prop)
 
+    def _tops(self, xy: np.ndarray, b_max: np.ndarray) -> np.ndarray:
+        """Fill height of a bed at points (N, 2): its top, or the scanned surface (soil.terrain)."""
+        if self.surface is None:
+            return np.full(len(xy), b_max[2])
+        from .terrain_bed import surface_at
+
+        return surface_at(self.surface, xy)
+
+    def _highest_top(self, b_min: np.ndarray, b_max: np.ndarray) -> float:
+        if self.surface is None:
+            return float(b_max[2])
+        x, y, z = self.surface
+        inside = ((x >= b_min[0]) & (x <= b_max[0]))[:, None] & ((y >= b_min[1]) & (y <= b_max[1]))[None, :]
+        return float(max(b_max[2], np.nanmax(z[inside])))
+
+    def _bed_volume(self, b_min: np.ndarray, b_max: np.ndarray) -> float:
+        """Volume the bed's soil fills: the box, or from its floor up to the scanned surface."""
+        if self.surface is None:
+            return float(np.prod(b_max - b_min))
+        x, y, z = self.surface
+        inside = ((x >= b_min[0]) & (x <= b_max[0]))[:, None] & ((y >= b_min[1]) & (y <= b_max[1]))[None, :]
+        cell = abs((x[1] - x[0]) * (y[1] - y[0]))
+        return float(np.nansum(z[inside] - b_min[2]) * cell)
+
     def _trim_to_beds(self) -> None:
-        """Remove particles centred above their bed's top less half a radius: each bed is full and level, its
-        highest grains reaching at most r / 2 above the top."""
+        """Remove particles centred above their bed's top less half a radius: each bed is full and level (or follows
+        its scanned surface), its highest grains reaching at most r / 2 above the top."""
         flags = self._flags.to_numpy()
         kin = self._kin.to_numpy()
         top = np.full(len(flags), -np.inf)
         for b_min, b_max in self.beds:
             inside = np.all((kin[:, 0, :2] >= b_min[:2]) & (kin[:, 0, :2] <= b_max[:2]), axis=1)
-            top[inside] = b_max[2]
+            top[inside] = self._tops(kin[inside, 0, :2], b_max)
         rad = self._prop.to_numpy()[:, 0]
         flags[kin[:, 0, 2] + 0.5 * rad > top] = 0
         self._flags.from_numpy(flags)
@@ -752,6 +829,15 @@ class DemSoil:
     @property
     def n_particles(self) -> int:
         return self.n_act
+
+    @property
+    def n_sleeping(self) -> int:
+        """Active particles asleep now (soil.sleep)."""
+        steps = int(self._prm.to_numpy()[dem.P_SLEEP_STEPS])
+        if steps <= 0 or self.n_act == 0:
+            return 0
+        calm = self._surf_id.to_numpy()[:self.n_act, dem.TOOL_BITS] >> dem.CALM_SHIFT
+        return int(np.sum((calm >= steps) & (self._flags.to_numpy()[:self.n_act] == 1)))
 
     @property
     def neighbor_entries(self) -> int:

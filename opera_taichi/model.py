@@ -73,6 +73,7 @@ class MachineModel:
     fixed_base: bool
     initial_q: dict[str, float]          # rad, every actuated joint
     motion: Optional[JointProfile]       # the scene's motion script (None = hold the initial pose)
+    command_latency: float = 0.0         # s, dead time of commands from a ROS bridge (scene, else machine.yaml)
 
     @property
     def joints(self) -> list[str]:
@@ -96,6 +97,8 @@ class SoilModel:
     bed_shift: tuple[float, float, float]
     clear_above: float | None            # m
     grid: Grid2D                         # heightmap nodes of the run folder's terrain files
+    sleep: bool = False                  # particles at rest far from every tool sleep
+    surface: tuple | None = None         # (x, y, z[ix, iy]) m: top of the fill (soil.terrain); None = level beds
 
 
 @dataclass(frozen=True)
@@ -213,7 +216,9 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
     return MachineModel(name=name, description=desc, kinematics=kin,
                         base_xyz=tuple(float(v) for v in cfg.base_pose.xyz), base_yaw=float(cfg.base_pose.yaw),
                         fixed_base=bool(cfg.fixed_base), initial_q=initial_q,
-                        motion=_build_motion(motion, motion_key, desc, kin, initial_q))
+                        motion=_build_motion(motion, motion_key, desc, kin, initial_q),
+                        command_latency=float(cfg.command_latency if cfg.command_latency is not None
+                                              else desc.command_latency))
 
 
 def soil_parameters(soil):
@@ -238,6 +243,12 @@ def _build_soil(scene) -> SoilModel:
     from .soil import check_dt
 
     soil = scene.soil
+    surface = None
+    if soil.terrain is not None:  # beds filled to a scanned surface: their floors follow from it
+        from .terrain_bed import terrain_beds
+
+        beds, surface = terrain_beds(soil, terrain_grid(soil))
+        soil = soil.model_copy(update={"bed": beds})
     bulk, micro = soil_parameters(soil)
     if scene.sim.soil_dt is not None:
         check_dt(micro, float(scene.sim.soil_dt))
@@ -256,7 +267,7 @@ def _build_soil(scene) -> SoilModel:
                      seed=int(scene.sim.seed), settle_time=float(soil.settle_time), max_speed=float(soil.max_speed),
                      bed_shift=tuple(map(float, soil.bed_shift)),
                      clear_above=None if soil.clear_above is None else float(soil.clear_above),
-                     grid=terrain_grid(soil))
+                     grid=terrain_grid(soil), sleep=bool(soil.sleep), surface=surface)
     from .soil_solver import solver_class
 
     solver = solver_class(soil.model)
@@ -287,6 +298,7 @@ def _fingerprint(scene) -> str:
 
     data = scene_to_dict(scene)
     data.pop("output", None)
+    data.pop("bridge", None)     # how the machine is commanded, not what it is
     data.get("sim", {}).pop("duration", None)
     data.get("sim", {}).pop("arch", None)
     data.pop("name", None)

@@ -141,6 +141,14 @@ def default_observers(scene, sim, manifest: Manifest, quiet: bool, progress) -> 
                 TerrainNpz(scene.output.particles_final)]
     if scene.output.plots:
         out.append(Plots())
+    if scene.output.bag is not None:  # run.mcap / run.bag: the ROS topics (ros/bag.py)
+        from .ros.bag import BagObserver
+
+        out.append(BagObserver(scene.output.bag, scene.bridge))
+    if scene.output.replay:  # replay.bin: frames for `view RUN_DIR` (viewer/replay.py; numpy only)
+        from .viewer.replay import ReplayRecorder
+
+        out.append(ReplayRecorder(scene.output.replay_rate))
     out += [ProgressBar(progress), manifest, Summary(quiet)]
     return out
 
@@ -330,7 +338,7 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
             if sim is not None:
                 sim.close()
     return RunResult(out, status, sim.t, wall, manifest.data["real_time_factor"] or 0.0,
-                     int(sim.soil.n_particles) if sim.soil is not None else 0, message)
+                     int(manifest.data.get("particles") or 0), message)
 
 
 def write_plots(out: Path, joints, limits=None, density=None) -> None:

@@ -332,6 +332,31 @@ def _default_bed() -> list[Box]:
     return [Box(min=(3.0, -1.5, -1.0), max=(9.0, 1.5, 0.0))]
 
 
+class TerrainConfig(_Model):
+    """A bed from real terrain: the soil fills each bed's footprint from the scanned surface down to `depth` below
+    its lowest point (a box pit whose fill is trimmed to the surface instead of level), poured, settled and cached
+    like any bed."""
+
+    file: ExistingFile = Field(description="Scan (LAS/LAZ, PLY, XYZ/CSV, GeoTIFF or NPZ heightmap), relative to the "
+                                           "scene file; it must cover every bed's footprint.")
+    xyz: Vec3M = Field((0.0, 0.0, 0.0), description="Scan frame -> world: translation [x, y, z], applied after the "
+                                                    "rotation.")
+    yaw: Radians = Field(0.0, description="Scan frame -> world: rotation about z.")
+    yaw_deg: Optional[Degrees] = Field(None, exclude=True, description="Same, in degrees.")
+    roll: Radians = Field(0.0, description="Rotation about x (before pitch and yaw).")
+    roll_deg: Optional[Degrees] = Field(None, exclude=True, description="Same, in degrees.")
+    pitch: Radians = Field(0.0, description="Rotation about y.")
+    pitch_deg: Optional[Degrees] = Field(None, exclude=True, description="Same, in degrees.")
+    depth: _num("m", gt=0) = Field(1.0, description="Depth of the soil below the lowest scanned point of a bed's "
+                                                    "footprint (the bed's floor; replaces its min z).")
+
+    @model_validator(mode="after")
+    def _to_radians(self):
+        for name in ("yaw", "roll", "pitch"):
+            _radians_from_deg(self, name, name + "_deg")
+        return self
+
+
 class SoilConfig(_Model):
     """The soil: a bed of pits cut into the ground and filled with particles."""
 
@@ -352,6 +377,15 @@ class SoilConfig(_Model):
     max_speed: _num("m/s", gt=0) = Field(30.0, description="Divergence guard: a faster particle stops the run "
                                                            "(exit 3).")
     heightmap_cell: _num("m", gt=0) = Field(0.05, description="Cell size of the terrain heightmaps.")
+    terrain: Optional[TerrainConfig] = Field(
+        None, description="Fill the beds up to a scanned surface instead of level with their top (see TerrainConfig).")
+    preset_file: Optional[ExistingFile] = Field(
+        None, description="Soil preset file (YAML of bulk parameters, the keys of `overrides`, e.g. written by "
+        "`opera-taichi calibrate`), relative to the scene file: its values replace the preset's and `overrides` "
+        "replace its; its own `preset` key, when given, names the preset it builds on.")
+    sleep: Bool = Field(False, description="Let particles at rest far from every tool sleep (not integrated; woken "
+                                           "by a tool within a grain's reach or a moving neighbour): the cost of a "
+                                           "step follows the soil that moves. Mass and contact history stay exact.")
     bed_shift: Vec3M = Field((0.0, 0.0, 0.0), description="Moves every settled bed particle by [dx, dy, dz] at "
                              "t = 0, leaving the pits empty: [dx, 0, H] stands a settled block of height H on the "
                              "ground, released at once (column collapse, heaps, free-standing cuts).")
@@ -362,6 +396,16 @@ class SoilConfig(_Model):
 
     @model_validator(mode="after")
     def _bed_fits(self):
+        if self.preset_file is not None:
+            from .soil import read_preset_file
+
+            try:
+                base, _ = read_preset_file(self.preset_file)
+            except UserError as exc:
+                raise _fail(message=str(exc), key="preset_file") from None
+            if base is not None and "preset" in self.model_fields_set and base != self.preset:
+                raise _fail(message=f"{self.preset_file.name} builds on preset {base!r}, the scene names "
+                                    f"{self.preset!r}; remove one", key="preset")
         if self.clear_above is not None and self.clear_above > self.domain.max[2]:
             raise _fail(f"a height <= the domain top {_fmt(self.domain.max[2])} m", self.clear_above,
                         key="clear_above")
@@ -413,6 +457,9 @@ class MachineConfig(_Model):
                                         "initial_joints for other joints).")
     actuators: Annotated[dict[str, ActuatorLimits], _none_to({})] = Field(
         default_factory=dict, description="Joint name -> actuator settings overriding the machine config.")
+    command_latency: Optional[_num("s", ge=0, le=10)] = Field(
+        None, description="Dead time between a command from a ROS bridge and the machine acting on it (the real "
+                          "machine's response delay); null = the machine config's `command_latency` (0 if none).")
 
     @model_validator(mode="after")
     def _resolve(self):
@@ -632,6 +679,41 @@ class OutputConfig(_Model):
     mass_rate: Rate = Field(10.0, description="soil_mass.csv sample rate; at most 1/sim.dt.")
     particles_final: Bool = Field(False, description="Write particles_final.npz.")
     plots: Bool = Field(True, description="Write PNG plots.")
+    replay: Bool = Field(False, description="Write replay.bin (frames for `opera-taichi view RUN_DIR`: the 3-D "
+                                            "replay, --html, --mp4); `run --replay` sets it.")
+    replay_rate: Rate = Field(10.0, description="replay.bin frame rate, Hz of simulated time; at most 1/sim.dt.")
+    bag: Optional[_choice("mcap", "ros1")] = Field(
+        None, description="Also write the run's ROS topics (the bridge's topics and rates): `mcap` = run.mcap (ROS 2 "
+                          "schemas, CDR; ros2 bag, Foxglove, rosbags), `ros1` = run.bag (ROS 1); null = none.")
+
+
+_ROS_NAME = r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
+
+
+class BridgeConfig(_Model):
+    """A ROS bridge: commands from ROS topics in, the machines' state out (README: Connect your ROS stack)."""
+
+    kind: _choice("ros1", "ros_tcp") = Field(description="`ros1`: a rospy node on the master of ROS_MASTER_URI; "
+                                                         "`ros_tcp`: a client of Unity's ROS-TCP-Endpoint (ROS 1 or 2). "
+                                                         "`run --ros1` / `--ros-tcp HOST:PORT` override it (and "
+                                                         "`--pace`, `--bridge-after-motion` the keys below).")
+    address: Optional[Annotated[str, BeforeValidator(_NameRule(r"[^\s]{1,200}", "no spaces"))]] = Field(
+        None, description="ros_tcp: the endpoint's HOST:PORT (null = 127.0.0.1:10000); ros1: the master URI "
+                          "(null = ROS_MASTER_URI).")
+    namespace: Optional[Annotated[str, BeforeValidator(_NameRule(_ROS_NAME, "a ROS name: letters, digits, _ and /"))]] \
+        = Field(None, description="Topic namespace of the machine; null = the machine's name (zx120).")
+    rates: Annotated[dict[str, Rate], _none_to({})] = Field(
+        default_factory=dict, description="Output topic key (joint_states, odom, base_link/pose, bucket/wrench, "
+                                          "soil_mass, soil_volume, tf, clock, terrain) -> rate in Hz of simulated time.")
+    topics: Annotated[dict[str, str], _none_to({})] = Field(
+        default_factory=dict, description="Topic key (its default name relative to the namespace, e.g. boom/cmd, "
+                                          "joint_states; or tf, clock, terrain) -> name; relative names are in the "
+                                          "namespace.")
+    pace: _choice("realtime", "fast") = Field(
+        "realtime", description="`realtime`: simulated time kept to the wall clock; `fast`: as fast as it goes "
+                                "(/clock published for use_sim_time stacks).")
+    after_motion: Bool = Field(False, description="Run the scene's motion first, then take commands from ROS "
+                                                  "(otherwise the motion is set aside).")
 
 
 class Scene(_Model):
@@ -649,6 +731,7 @@ class Scene(_Model):
     tools: Annotated[list[ToolConfig], _none_to([])] = Field(default_factory=list,
                                                             description="Standalone rigid tools.")
     motion: Optional[Motion] = Field(None, description="Machine motion, chosen by `type`; null = hold still.")
+    bridge: Optional[BridgeConfig] = Field(None, description="ROS bridge (commands in, state out); null = none.")
     output: Annotated[OutputConfig, _none_to({})] = Field(default_factory=OutputConfig,
                                                          description="Run folder contents.")
     source: Optional[Path] = Field(None, exclude=True, description="The scene file (set by load_scene).")
@@ -669,7 +752,7 @@ class Scene(_Model):
         if self.motion is not None and self.machine is None:
             raise _fail(message="a motion needs a machine: add a machine section (or remove motion; with "
                                 "machines, each has its own motion)", key="motion")
-        for key in ("joints_rate", "wrench_rate", "mass_rate"):
+        for key in ("joints_rate", "wrench_rate", "mass_rate", "replay_rate"):
             if getattr(self.output, key) > 1.0 / self.sim.dt * (1 + 1e-9):
                 raise _fail(f"a rate in Hz > 0 and <= 1/sim.dt ({_fmt(1.0 / self.sim.dt)})",
                             getattr(self.output, key), key=f"output.{key}")

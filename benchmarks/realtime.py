@@ -1,0 +1,109 @@
+"""The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
+
+    python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
+                                  [--duration 25]
+
+For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
+`--site` adds scenes/zx120_site.yaml (the same dig in a 20 m x 20 m x 1 m bed) at 8 cm. Settling the bed is not
+timed (it is cached after the first run of a size; run the command twice for a cold cache). A table per run:
+
+  radius, particles, awake particles (mean over the drag, soil.sleep), real-time factor (simulated / wall seconds of
+  the loop), particle-steps per second, and the bucket's mean draft over the drag (8-16 s) against the earthmoving
+  equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade)
+
+Report the host: `lscpu | grep 'Model name'` and whether other work shared it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from opera_taichi.observers import Observer  # noqa: E402
+
+BUCKET_WIDTH = 0.9   # m, the ZX120 bucket's cutting edge
+CUT_DEPTH = 0.5      # m, the dig path's depth
+DRAG = (8.0, 16.0)   # s, the dig path's drag
+
+
+class AwakeCount(Observer):
+    """How many grains are awake during the drag, twice a second of simulated time."""
+
+    rate = 2.0
+
+    def start(self, sim, run):
+        self.counts = []
+
+    def sample(self, sim):
+        if sim.soil is not None and DRAG[0] <= sim.t <= DRAG[1]:
+            self.counts.append(sim.soil.n_particles - sim.soil.n_sleeping)
+
+
+def fee_draft(model) -> float:
+    from opera_taichi.validation.references import earthmoving_force
+
+    bulk = model.soil.bulk
+    return earthmoving_force(CUT_DEPTH, BUCKET_WIDTH, math.pi / 2, bulk.friction_angle, 0.0, bulk.density,
+                             cohesion=bulk.cohesion).draft
+
+
+def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float) -> dict:
+    from opera_taichi.model import build_model
+    from opera_taichi.recorders import read_csv_columns
+    from opera_taichi.runner import run_scene
+    from opera_taichi.scene import load_scene
+
+    sets = [f"soil.overrides.radius={radius}", f"soil.sleep={str(sleep).lower()}", "output.plots=false",
+            f"sim.duration={duration}", f"sim.arch={arch}"]
+    scene = load_scene(scene_path, sets)
+    awake = AwakeCount()
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        result = run_scene(scene, out_dir=Path(tmp) / "run", quiet=True, observers=[awake])
+        total = time.perf_counter() - t0
+        manifest = json.loads((Path(tmp) / "run" / "manifest.json").read_text())
+        w = read_csv_columns(Path(tmp) / "run" / "tool_wrench.csv")
+        drag = (w["t"] >= DRAG[0]) & (w["t"] <= DRAG[1])
+        draft = float(np.abs(w["fx"][drag]).mean()) if drag.any() else float("nan")
+    fee = fee_draft(build_model(scene))
+    return dict(scene=scene.name, radius=radius, sleep=sleep, particles=result.particles,
+                awake=float(np.mean(awake.counts)) if awake.counts else float(result.particles),
+                rtf=result.real_time_factor, wall=result.wall_time, setup=manifest.get("setup_wall_time_s"),
+                total=total, psps=manifest.get("particle_steps_per_s"), draft=draft, fee=fee)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--radii", default="0.16,0.12,0.08,0.05")
+    parser.add_argument("--site", action="store_true", help="also the 20 m site at 8 cm")
+    parser.add_argument("--sleep", choices=("both", "on", "off"), default="both")
+    parser.add_argument("--arch", default="cpu")
+    parser.add_argument("--duration", type=float, default=25.0)
+    args = parser.parse_args()
+    sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
+    runs = [(ROOT / "scenes" / "zx120_excavation.yaml", float(r)) for r in args.radii.split(",")]
+    if args.site:
+        runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
+    print("| scene | radius m | sleep | particles | awake (mean) | RTF | M particle-steps/s | draft kN (8-16 s) "
+          "| FEE kN | draft/FEE |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for path, radius in runs:
+        for sleep in sleeps:
+            r = one(path, radius, sleep, args.arch, args.duration)
+            print(f"| {r['scene']} | {radius:g} | {'on' if sleep else 'off'} | {r['particles']:,} | "
+                  f"{r['awake']:,.0f} | {r['rtf']:.3f} | {(r['psps'] or 0) / 1e6:.2f} | {r['draft'] / 1e3:.1f} | "
+                  f"{r['fee'] / 1e3:.1f} | {r['draft'] / r['fee']:.2f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
