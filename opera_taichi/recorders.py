@@ -14,12 +14,12 @@ def write_json(path: Path, data: dict) -> None:
     """Write atomically: a reader never sees half a manifest."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2, default=_json_default)
+        json.dump(data, fh, indent=2, default=json_default)
         fh.write("\n")
     os.replace(tmp, path)
 
 
-def _json_default(obj):
+def json_default(obj):
     if isinstance(obj, (np.floating, np.integer)):
         return obj.item()
     if isinstance(obj, np.ndarray):

@@ -20,6 +20,7 @@ import numpy as np
 from .control import Control, as_control
 from .errors import DivergenceError, UserError
 from .model import Model, build_model, check_scene, soil_parameters  # noqa: F401  (the public names live here too)
+from .recorders import json_default
 from .state import MachineState, State
 
 CHECKPOINT_SUFFIX = ".ckpt.npz"
@@ -236,7 +237,7 @@ def save_checkpoint(path, state: State, model: Model, soil, extra: dict | None =
               "solver": None if soil is None else [soil.name, soil.version], "t": state.t, "step": state.step,
               "machines": sorted(state.machines), "control": None if state.control is None else state.control.to_dict(),
               "rng": state.rng, "extra": extra or {}}
-    arrays = {"header": np.array(json.dumps(header, default=_json_default))}
+    arrays = {"header": np.array(json.dumps(header, default=json_default))}
     arrays["tool_wrench"] = state.tool_wrench
     for name, ms in state.machines.items():
         for key, value in ms.arrays().items():
@@ -298,16 +299,6 @@ def _rng_state(data):
     if isinstance(inner, dict):
         state["state"] = {k: int(v) for k, v in inner.items()}
     return state
-
-
-def _json_default(obj):
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def _fsync_dir(path: Path) -> None:
