@@ -167,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     physics.add_argument("--arch", choices=("cpu", "cuda", "auto"), help="Taichi backend")
     physics.add_argument("--quiet", action="store_true", help="no progress bars")
     physics.set_defaults(handler=_cmd_validate_physics)
+    from .studies.commands import add_commands  # compare, study, calibrate (opera_taichi/studies/)
+
+    add_commands(commands)
     return parser
 
 

@@ -169,6 +169,41 @@ def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
     return SoilBulk(**values)
 
 
+def read_preset_file(path) -> tuple[str | None, dict]:
+    """(base preset or None, bulk parameters) of a soil preset file: a YAML mapping of `soil.overrides` keys, an
+    optional `preset` (the built-in preset it builds on) and an optional `calibration` block (provenance, not read).
+    UserError names the file and the key."""
+    from pathlib import Path
+
+    from .scene import _parse_yaml, _read_scene_text
+
+    label = str(path)
+    data = _parse_yaml(_read_scene_text(Path(path), label), label)
+    if not isinstance(data, dict):
+        raise UserError(f"{label}: expected a mapping of soil parameters ({', '.join(_ALLOWED)})")
+    base = data.get("preset")
+    if base is not None and base not in PRESETS:
+        raise UserError(f"{label}: preset: expected one of {', '.join(sorted(PRESETS))}, got {base!r}")
+    values = {k: v for k, v in data.items() if k not in ("preset", "calibration")}
+    try:
+        resolve_soil(base or "sand", values)  # checks every key and value
+    except UserError as exc:
+        raise UserError(str(exc).replace("soil.overrides.", f"{label}: ", 1)) from None
+    return base, values
+
+
+def resolve_scene_soil(soil_cfg) -> SoilBulk:
+    """A scene's soil section as bulk parameters: the preset, the preset file's values, then the overrides."""
+    base, values = (None, {}) if getattr(soil_cfg, "preset_file", None) is None else \
+        read_preset_file(soil_cfg.preset_file)
+    overrides = dict(soil_cfg.overrides or {})
+    for key in list(values):  # an override replaces the file's value, in whichever unit either gives it
+        twin = key[:-4] if key.endswith("_deg") else key + "_deg"
+        if key in overrides or twin in overrides:
+            values.pop(key)
+    return resolve_soil(base or soil_cfg.preset, {**values, **overrides})
+
+
 def calibrated_rolling_resistance(friction_angle: float) -> float:
     """Rolling resistance of the default mapping: ROLLING_MAX (tan(phi) / tan(33 deg))^ROLLING_EXPONENT, capped at
     ROLLING_MAX."""

@@ -1,0 +1,366 @@
+"""`calibrate STUDY.yaml`: soil parameters fitted to a reference with Optuna, trials run on the study's Dask cluster;
+the best parameters written as a soil preset file (`soil.preset_file` in a scene).
+
+The study file's `calibrate` section (its scene, set, reference and out as for `study`):
+
+    calibrate:
+      parameters:                                   # soil.overrides.* paths, with bounds
+        soil.overrides.friction_angle_deg: {low: 24, high: 40}
+      trials: 6
+      sampler: tpe                                  # tpe | qmc | random
+      refine: true                                  # the last trial at the surrogate's optimum (see below)
+      objective: force                              # force | terrain | joints | metric
+      force: {file: measured_force.csv, column: fx, tool: blade, t: [0.3, 1.5], smooth_s: 0.2}
+      metric: {name: wrench.blade.fx.mean, target: 850.0}     # objective: metric
+      preset_file: soil_preset.yaml                 # default: <out>/soil_preset.yaml
+
+Objectives (the loss, smaller is better):
+- force: RMS of the run's force curve minus the measured one (both smoothed by a moving average of smooth_s, on the
+  measured samples inside t), over the measured curve's RMS. The measured CSV has `t` and `column`; a `tool` column,
+  when there is one (a run's tool_wrench.csv), selects the rows of `tool`;
+- terrain: compare's terrain_rmse_m against the study's reference scan; joints: compare's joints_rmse_rad against
+  its joint log; metric: |metric - target| / |target|.
+Refinement: with `refine`, the last trial is not sampled but placed where a fit through the trials so far puts the
+optimum: for one parameter and an objective with a sign (force: the mean of the difference; metric), the zero of a
+line through the two trials that bracket the sign change; otherwise the vertex of a quadratic through the best
+trials (per parameter, kept inside the bounds). The result is a trial like any other: the best trial wins.
+Resumable: the trials live in <out>/optuna.journal (Optuna's journal storage); a rerun adds trials up to `trials`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from .study import Parameter, _is_num, _parameter, load_study, make_task, run_point, scale
+
+OBJECTIVES = ("force", "terrain", "joints", "metric")
+
+
+# ----------------------------------------------------------------------------------------------- objectives
+def _smooth_on(t, v, t_eval, width):
+    """Moving average of v(t) over `width` seconds, sampled at t_eval."""
+    if width <= 0:
+        return np.interp(t_eval, t, v)
+    c = np.concatenate([[0.0], np.cumsum((v[1:] + v[:-1]) / 2 * np.diff(t))])  # trapezoid integral
+    lo = np.clip(t_eval - width / 2, t[0], t[-1])
+    hi = np.clip(t_eval + width / 2, t[0], t[-1])
+    span = np.maximum(hi - lo, 1e-12)
+    return (np.interp(hi, t, c) - np.interp(lo, t, c)) / span
+
+
+def read_force_curve(path, column: str, tool: str | None) -> tuple[np.ndarray, np.ndarray]:
+    from ..recorders import read_csv_columns
+
+    path = Path(path)
+    try:
+        cols = read_csv_columns(path)
+    except (OSError, IndexError, ValueError, UnicodeDecodeError) as exc:
+        raise UserError(f"calibrate.force.file: {path}: unreadable ({type(exc).__name__})") from None
+    if "t" not in cols:
+        raise UserError(f"calibrate.force.file: {path}: header has no `t` column (got {', '.join(cols)})")
+    if column not in cols or isinstance(cols[column], list):
+        raise UserError(f"calibrate.force.column: {path} has no numeric column {column!r} (got {', '.join(cols)})")
+    keep = np.ones(len(cols["t"]), bool)
+    if tool is not None and "tool" in cols:
+        keep = np.array([str(c) == tool for c in cols["tool"]])
+        if not keep.any():
+            raise UserError(f"calibrate.force.tool: {path} has no rows of tool {tool!r}")
+    t, f = np.asarray(cols["t"], float)[keep], np.asarray(cols[column], float)[keep]
+    if len(t) < 3 or np.any(np.diff(t) <= 0):
+        raise UserError(f"calibrate.force.file: {path}: needs at least 3 rows with t strictly increasing")
+    return t, f
+
+
+def objective_value(run_dir: Path, spec: dict) -> dict:
+    """{'loss': float, 'signed': float | None} of a finished run folder against the objective."""
+    kind = spec["objective"]
+    if kind == "force":
+        f = spec["force"]
+        t_ref, f_ref = read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))
+        t_run, f_run = read_force_curve(run_dir / "tool_wrench.csv", f.get("column", "fx"), f.get("tool"))
+        window = f.get("t") or [max(t_ref[0], t_run[0]), min(t_ref[-1], t_run[-1])]
+        te = t_ref[(t_ref >= window[0]) & (t_ref <= window[1])]
+        if len(te) < 3:
+            raise UserError(f"calibrate.force.t: fewer than 3 measured samples in {window}")
+        w = float(f.get("smooth_s", 0.2))
+        a, b = _smooth_on(t_run, f_run, te, w), _smooth_on(t_ref, f_ref, te, w)
+        scale_ = float(np.sqrt(np.mean(b ** 2))) or 1.0
+        return {"loss": float(np.sqrt(np.mean((a - b) ** 2)) / scale_), "signed": float(np.mean(a - b) / scale_)}
+    if kind == "metric":
+        from .study import collect_metrics
+
+        m = spec["metric"]
+        value = collect_metrics(run_dir, [m["name"]], spec.get("reference") or {})[m["name"]]
+        if value is None:
+            raise UserError(f"calibrate.metric.name: {m['name']} has no value in {run_dir}")
+        target = float(m["target"])
+        denom = abs(target) or 1.0
+        return {"loss": abs(value - target) / denom, "signed": (value - target) / denom, m["name"]: value}
+    from .compare import compare
+
+    ref = spec.get("reference") or {}
+    result = compare(run_dir, terrain=ref.get("terrain"), terrain_before=ref.get("terrain_before"),
+                     joints=ref.get("joints"), against=ref.get("against"), transform=ref.get("transform"),
+                     fit=ref.get("fit_transform"), figures=False)
+    key = "terrain_rmse_m" if kind == "terrain" else "joints_rmse_rad"
+    if result.get(key) is None:
+        raise UserError(f"calibrate.objective: {kind}: compare gave no {key} for {run_dir}")
+    return {"loss": float(result[key]), "signed": float(result["terrain_bias_m"]) if kind == "terrain" else None}
+
+
+# ----------------------------------------------------------------------------------------------- the section
+def _section(study, label: str, trials_override: int | None) -> dict:
+    c = study.calibrate
+    if not isinstance(c, dict):
+        raise UserError(f"{label}: calibrate: required, a mapping (parameters, trials, objective, ...)")
+    allowed = {"parameters", "trials", "sampler", "refine", "objective", "force", "metric", "preset_file", "seed"}
+    bad = sorted(set(c) - allowed)
+    if bad:
+        raise UserError(f"{label}: calibrate.{bad[0]}: unknown key; allowed: {', '.join(sorted(allowed))}")
+    params_in = c.get("parameters")
+    if not isinstance(params_in, dict) or not params_in:
+        raise UserError(f"{label}: calibrate.parameters: expected a mapping of soil.overrides.* paths to "
+                        f"{{low, high}}")
+    params = []
+    for path, spec in params_in.items():
+        if not str(path).startswith("soil.overrides."):
+            raise UserError(f"{label}: calibrate.parameters.{path}: calibrates soil parameters; expected a path "
+                            f"soil.overrides.<name>")
+        p = _parameter(str(path), spec, label)
+        if p.low is None:
+            raise UserError(f"{label}: calibrate.parameters.{path}: expected {{low: a, high: b}}")
+        params.append(p)
+    trials = trials_override or c.get("trials", 20)
+    if not (isinstance(trials, int) and not isinstance(trials, bool) and trials >= 1):
+        raise UserError(f"{label}: calibrate.trials: expected a positive integer, got {trials!r}")
+    sampler = c.get("sampler", "tpe")
+    if sampler not in ("tpe", "qmc", "random"):
+        raise UserError(f"{label}: calibrate.sampler: expected tpe, qmc or random, got {sampler!r}")
+    objective = c.get("objective")
+    if objective not in OBJECTIVES:
+        raise UserError(f"{label}: calibrate.objective: expected one of {', '.join(OBJECTIVES)}, got {objective!r}")
+    spec = {"objective": objective, "reference": study.reference}
+    base = study.source.parent
+    if objective == "force":
+        f = c.get("force")
+        if not isinstance(f, dict) or "file" not in f:
+            raise UserError(f"{label}: calibrate.force: required with objective force: {{file, column, tool, t, "
+                            f"smooth_s}}")
+        bad = sorted(set(f) - {"file", "column", "tool", "t", "smooth_s"})
+        if bad:
+            raise UserError(f"{label}: calibrate.force.{bad[0]}: unknown key; allowed: column, file, smooth_s, t, tool")
+        file = Path(f["file"]) if Path(f["file"]).is_absolute() else base / f["file"]
+        if not file.is_file():
+            raise UserError(f"{label}: calibrate.force.file: no file at {file}")
+        f = {**f, "file": str(file.resolve())}
+        read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))  # bad files stop here
+        spec["force"] = f
+    elif objective == "metric":
+        m = c.get("metric")
+        if not (isinstance(m, dict) and isinstance(m.get("name"), str) and _is_num(m.get("target"))):
+            raise UserError(f"{label}: calibrate.metric: required with objective metric: {{name, target}}")
+        spec["metric"] = m
+    elif objective == "terrain" and "terrain" not in study.reference and "against" not in study.reference:
+        raise UserError(f"{label}: reference.terrain: required with objective terrain (the scan to match)")
+    elif objective == "joints" and "joints" not in study.reference and "against" not in study.reference:
+        raise UserError(f"{label}: reference.joints: required with objective joints (the log to match)")
+    preset = c.get("preset_file")
+    preset = (base / preset).resolve() if preset else study.out / "soil_preset.yaml"
+    refine = c.get("refine", True)
+    if not isinstance(refine, bool):
+        raise UserError(f"{label}: calibrate.refine: expected true or false, got {refine!r}")
+    seed = c.get("seed", study.seed)
+    return dict(params=params, trials=trials, sampler=sampler, spec=spec, preset=preset, refine=refine, seed=seed)
+
+
+def _sampler(kind: str, seed: int, trials: int):
+    import optuna
+
+    if kind == "qmc":
+        return optuna.samplers.QMCSampler(qmc_type="sobol", scramble=True, seed=seed, warn_independent_sampling=False)
+    if kind == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    return optuna.samplers.TPESampler(seed=seed, n_startup_trials=max(2, min(10, trials // 2)))
+
+
+# ----------------------------------------------------------------------------------------------- refinement
+def refine_point(rows: list[dict], params: list[Parameter]) -> dict | None:
+    """Where a fit through the finished trials puts the optimum (None when it cannot say)."""
+    done = [r for r in rows if r.get("loss") is not None and math.isfinite(r["loss"])]
+    if len(done) < 3:
+        return None
+    if len(params) == 1:
+        p = params[0]
+        signed = [r for r in done if r.get("signed") is not None]
+        if len(signed) == len(done):
+            pts = sorted((r[p.path], r["signed"]) for r in signed)
+            for (x0, s0), (x1, s1) in zip(pts, pts[1:]):
+                if s0 == 0.0:
+                    return {p.path: float(x0)}
+                if s0 * s1 < 0:  # the sign changes between these two: its zero on the line through them
+                    return {p.path: float(x0 + (x1 - x0) * s0 / (s0 - s1))}
+    best = sorted(done, key=lambda r: r["loss"])
+    out = {}
+    for p in params:  # per parameter: the vertex of a parabola through the three best trials
+        xs = np.array([r[p.path] for r in best[:3]], float)
+        ys = np.array([r["loss"] for r in best[:3]], float)
+        if np.ptp(xs) <= 0:
+            return None
+        a, b, _c = np.polyfit(xs, ys, 2)
+        if not a > 0:
+            return None
+        out[p.path] = float(np.clip(-b / (2 * a), p.low, p.high))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- the command
+def calibrate(path, scheduler: str | None = None, workers: int | None = None, out=None, quiet: bool = False,
+              trials: int | None = None) -> dict:
+    try:
+        import optuna
+        from optuna.storages import JournalStorage
+        from optuna.storages.journal import JournalFileBackend
+    except ImportError:
+        raise UserError("calibrate: needs optuna (pip install 'opera-taichi[studies]')") from None
+    from .study import Cluster, check_points
+
+    label = str(path)
+    study = load_study(path, out)
+    cfg = _section(study, label, trials)
+    params = cfg["params"]
+    check_points(study, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)
+    study.out.mkdir(parents=True, exist_ok=True)
+    trials_dir = study.out / "trials"
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = JournalStorage(JournalFileBackend(str(study.out / "optuna.journal")))
+    opt = optuna.create_study(study_name=study.name, storage=storage, direction="minimize", load_if_exists=True,
+                              sampler=_sampler(cfg["sampler"], cfg["seed"], cfg["trials"]))
+    dists = {p.path: optuna.distributions.FloatDistribution(p.low, p.high, log=p.log) for p in params}
+    rows: dict[int, dict] = {}
+    for tr in opt.trials:  # a previous session's trials: finished ones count; ones it left running are settled now
+        if tr.state == optuna.trial.TrialState.COMPLETE:
+            rows[tr.number] = {**tr.params, "loss": tr.value, "signed": tr.user_attrs.get("signed"),
+                               "status": "done", "trial": tr.number}
+        elif tr.state == optuna.trial.TrialState.RUNNING:
+            opt.tell(tr.number, state=optuna.trial.TrialState.FAIL)
+    say = (lambda *a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    n_done = sum(1 for r in rows.values())
+    todo = max(0, cfg["trials"] - n_done)
+    say(f"calibrate {study.name}: {cfg['trials']} trials ({n_done} finished before), objective "
+        f"{cfg['spec']['objective']} -> {study.out}")
+    wall0 = time.perf_counter()
+    all_rows = list(rows.values())
+    if todo:
+        cluster = Cluster(scheduler, workers)
+        say(f"  on {cluster.workers} worker(s)")
+        from dask.distributed import as_completed
+
+        pending = {}
+        asked = 0
+
+        def submit():
+            nonlocal asked
+            last = asked == todo - 1 and cfg["refine"] and not pending
+            guess = refine_point(all_rows, params) if last else None
+            if guess is not None:
+                opt.enqueue_trial(guess)
+            trial = opt.ask(dists)
+            point = dict(trial.params)
+            task = make_task(study, trial.number, point, trials_dir, objective=cfg["spec"])
+            trial.set_user_attr("run_dir", task["run_dir"])
+            trial.set_user_attr("refined", guess is not None)
+            fut = cluster.client.submit(run_point, task, key=f"{study.name}-t{trial.number}-{time.time_ns()}",
+                                        pure=False)
+            pending[fut] = (trial, task)
+            asked += 1
+
+        try:
+            # keep every worker busy, but hold the refined trial until all others are in
+            while asked < todo and len(pending) < cluster.workers and \
+                    not (cfg["refine"] and asked == todo - 1 and pending):
+                submit()
+            seq = as_completed(list(pending))
+            for fut in seq:
+                trial, task = pending.pop(fut)
+                try:
+                    row = fut.result()
+                except Exception as exc:  # noqa: BLE001 - a lost worker: a failed trial
+                    row = {"status": "error", "error": f"{type(exc).__name__}: {exc}"}
+                row = {**row, "trial": trial.number, **trial.params}
+                if row.get("status") == "done" and row.get("loss") is not None:
+                    if row.get("signed") is not None:
+                        trial.set_user_attr("signed", row["signed"])
+                    opt.tell(trial, row["loss"])
+                else:
+                    opt.tell(trial, state=optuna.trial.TrialState.FAIL)
+                all_rows.append(row)
+                say(f"  trial {trial.number}: " + ", ".join(f"{k} = {v:.5g}" for k, v in trial.params.items())
+                    + (f" loss {row['loss']:.4g}" if row.get("loss") is not None else f" {row.get('status')}: "
+                       f"{row.get('error', '')}"))
+                while asked < todo and len(pending) < cluster.workers and \
+                        not (cfg["refine"] and asked == todo - 1 and pending):
+                    submit()
+                    seq.add(list(pending)[-1])
+        finally:
+            cluster.close()
+    wall = time.perf_counter() - wall0
+    completed = [t for t in opt.trials if t.state == optuna.trial.TrialState.COMPLETE]
+    if not completed:
+        raise UserError(f"calibrate: no trial finished (see {trials_dir}/*/point.json)")
+    best = opt.best_trial
+    preset = write_preset(cfg["preset"], study, best.params, best.value, cfg, wall)
+    names = [p.path for p in params]
+    table_rows = [{"trial": t.number, **t.params, "loss": t.value, "state": t.state.name,
+                   "refined": t.user_attrs.get("refined"), "run_dir": t.user_attrs.get("run_dir")}
+                  for t in opt.trials]
+    from .figures import plot_calibration
+    from .study import write_table
+
+    write_table(study.out / "calibration", table_rows, names, ["loss"], lead=("trial",), status="state")
+    try:
+        plot_calibration(table_rows, names, best.params, study.out / "calibration.png")
+    except Exception as exc:  # noqa: BLE001
+        say(f"warning: calibration.png not written ({type(exc).__name__}: {exc})")
+    result = {"best_parameters": dict(best.params), "best_loss": best.value, "best_trial": best.number,
+              "trials": len(opt.trials), "preset_file": str(preset), "wall_time_s": round(wall, 3)}
+    from ..recorders import write_json
+
+    write_json(study.out / "calibration.json", result)
+    say(f"calibrate {study.name}: best loss {best.value:.4g} at trial {best.number}, {wall:.1f} s")
+    return result
+
+
+def write_preset(path: Path, study, best: dict, loss: float, cfg: dict, wall: float) -> Path:
+    """The soil preset file: the scene's preset and overrides with the calibrated values (bulk parameters), and a
+    `calibration` block saying where they came from (read by nothing; provenance)."""
+    import yaml
+
+    from ..scene import load_scene
+    from ..soil import PRESETS
+
+    scene = load_scene(study.scene, [f"{k}={json.dumps(v)}" for k, v in study.fixed.items()])
+    soil = scene.soil
+    values = {}
+    overrides = {**dict(soil.overrides or {}), **{k.removeprefix("soil.overrides."): v for k, v in best.items()}}
+    for key, value in overrides.items():
+        if key == "radius":  # a resolution, not a soil property: a scene keeps its own
+            continue
+        values[key] = float(value)
+    for twin in ("friction_angle", "tool_friction_angle"):
+        if twin in values and twin + "_deg" in values:
+            values.pop(twin)  # the calibrated one is the _deg
+    data = {"preset": soil.preset, **values,
+            "calibration": {"study": str(study.source), "scene": str(study.scene), "objective": cfg["spec"]["objective"],
+                            "loss": float(loss), "trials": cfg["trials"], "radius_m": float(
+                                overrides.get("radius", PRESETS[soil.preset]["radius"])),
+                            "wall_time_s": round(wall, 1)}}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("# Soil preset written by `opera-taichi calibrate`; use it with soil.preset_file in a scene.\n"
+                    + yaml.safe_dump(data, sort_keys=False))
+    return path

@@ -1,0 +1,492 @@
+"""`compare`: a run against a terrain scan, a joint log or another run; comparison.json, profile.csv and figures.
+
+Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial.npz / terrain_final.npz):
+- the reference final surface is the scan (gridded at the run's cell size, in the machine frame) or the other run's
+  final terrain; its initial surface is the scan taken before the dig, else the run's own initial terrain;
+- the dig area: the cells where the run or the reference changed by more than `change_threshold` (m), grown by
+  `margin_m`; volumes and errors are summed over it, so scan noise far from the dig adds nothing;
+- cut / fill: the volume below / above the initial surface, sum of max(0, -dz) dA and max(0, dz) dA;
+- max depth: the largest drop below the initial surface, and where; heave: the largest rise (the spoil beside
+  the trench), where, and on which side of the trench as seen from the machine (left, right, front = beyond the
+  trench, back = between the trench and the machine);
+- the dig line runs from the machine's base through the centre of the run's cut (cut-weighted); profile.csv samples
+  it.
+Joints (a log with `t` and joints in rad or `_deg`, a ROS bag's sensor_msgs/JointState, or the other run's
+joints.csv), on their common time span resampled at `JOINT_DT`:
+- rmse_rad: RMS of run minus reference; lag_s: the shift that best aligns the two (cross-correlation of the
+  mean-removed angles, positive = the run is late); rate_ratio: the 90th percentile of the run's |angular rate| over
+  the reference's (0.5 = the run moves at half the real rate).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ..recorders import read_csv_columns, write_json
+from . import scan as scans
+
+COMPARISON_FILE = "comparison.json"
+PROFILE_FILE = "profile.csv"
+JOINT_DT = 0.01            # s, resampling step of joint profiles
+RATE_SMOOTHING_S = 0.1     # s, moving average before differentiating joint angles
+MAX_LAG_S = 5.0            # s, the largest lag searched
+STILL_RATE = 1e-3          # rad/s: a reference joint this slow (90th percentile) stands still: no rate ratio
+FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
+MAX_VERTICAL_OFFSET_M = 2.0  # a placed scan this far above/below the run's terrain has not been placed
+
+
+# ----------------------------------------------------------------------------------------------- run folders
+def read_terrain(path: Path, key: str) -> dict:
+    if not path.is_file():
+        raise UserError(f"{key}: {path.parent} has no {path.name} (a run folder of a run with soil?)")
+    try:
+        with np.load(path) as f:
+            return {k: np.asarray(f[k], float) for k in ("x", "y", "z")}
+    except (OSError, ValueError, KeyError) as exc:
+        raise UserError(f"{key}: {path}: unreadable terrain file ({type(exc).__name__}: {exc})") from None
+
+
+def run_folder(path, key: str) -> Path:
+    path = Path(path)
+    if not (path / "manifest.json").is_file():
+        raise UserError(f"{key}: {path} is not a run folder (no manifest.json)")
+    return path
+
+
+def machine_pose(run_dir: Path) -> tuple[np.ndarray | None, float]:
+    """(base xy, yaw) of the run's (first) machine from its manifest; (None, 0) without a machine."""
+    try:
+        scene = json.loads((run_dir / "manifest.json").read_text()).get("scene", {})
+    except (OSError, ValueError):
+        return None, 0.0
+    machine = scene.get("machine") or (scene.get("machines") or [None])[0]
+    if not machine:
+        return None, 0.0
+    pose = machine.get("base_pose") or {}
+    xyz = pose.get("xyz") or [0.0, 0.0, 0.0]
+    return np.array(xyz[:2], float), float(pose.get("yaw") or 0.0)
+
+
+# ----------------------------------------------------------------------------------------------- terrain
+def dig_area(changes, threshold: float, margin_cells: int) -> np.ndarray:
+    """Cells where any change map exceeds the threshold, grown by margin_cells (a disc)."""
+    from scipy.ndimage import binary_dilation
+
+    mask = np.zeros(changes[0].shape, bool)
+    for dz in changes:
+        mask |= np.nan_to_num(np.abs(dz), nan=0.0) > threshold
+    if margin_cells > 0 and mask.any():
+        k = np.arange(-margin_cells, margin_cells + 1)
+        mask = binary_dilation(mask, (k[:, None] ** 2 + k[None, :] ** 2) <= margin_cells ** 2)
+    return mask
+
+
+def surface_metrics(z0, z1, x, y, mask, base_xy, yaw) -> dict:
+    """Cut, fill, max depth and heave of z1 against z0 over the mask (NaN cells skipped)."""
+    cell = abs((x[1] - x[0]) * (y[1] - y[0])) if len(x) > 1 and len(y) > 1 else 0.0
+    dz = np.where(mask, z1 - z0, np.nan)
+    valid = np.isfinite(dz)
+    out = {"cut_volume_m3": float(np.sum(np.maximum(0.0, -dz[valid])) * cell),
+           "fill_volume_m3": float(np.sum(np.maximum(0.0, dz[valid])) * cell),
+           "max_depth_m": 0.0, "max_depth_xy_m": None, "cut_centre_xy_m": None, "heave_height_m": 0.0,
+           "heave_xy_m": None,
+           "heave_side": None, "heave_offset_m": None}
+    if not valid.any():
+        return out
+    gx, gy = np.meshgrid(x, y, indexing="ij")
+    filled = np.where(valid, dz, 0.0)
+    i = np.unravel_index(int(np.argmin(filled)), dz.shape)
+    if filled[i] < 0:
+        out.update(max_depth_m=float(-filled[i]), max_depth_xy_m=[float(gx[i]), float(gy[i])])
+        cut = np.maximum(0.0, -filled)
+        out["cut_centre_xy_m"] = [float(np.sum(cut * gx) / cut.sum()), float(np.sum(cut * gy) / cut.sum())]
+    k = np.unravel_index(int(np.argmax(filled)), dz.shape)
+    if filled[k] > 0:
+        out.update(heave_height_m=float(filled[k]), heave_xy_m=[float(gx[k]), float(gy[k])])
+        cut = np.maximum(0.0, -filled)
+        if cut.sum() > 0:  # side of the heave from the trench's centre, in the machine's frame
+            centre = np.array([np.sum(cut * gx), np.sum(cut * gy)]) / cut.sum()
+            d = np.array([gx[k], gy[k]]) - centre
+            c, s = math.cos(yaw), math.sin(yaw)
+            fwd, left = c * d[0] + s * d[1], -s * d[0] + c * d[1]
+            side = ("left" if left > 0 else "right") if abs(left) > abs(fwd) else ("front" if fwd > 0 else "back")
+            out.update(heave_side=side, heave_offset_m=[float(fwd), float(left)])
+    return out
+
+
+def dig_line(x, y, depth_xy, base_xy, yaw) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(origin, unit direction, s) of the dig line: from the machine's base through the deepest point (the
+    machine's heading through the deepest point when it stands on it, x through the middle without either)."""
+    heading = np.array([math.cos(yaw), math.sin(yaw)])
+    if depth_xy is None:
+        origin = np.array([x[0], (y[0] + y[-1]) / 2]) if base_xy is None else base_xy
+        direction = heading
+    else:
+        origin = np.asarray(depth_xy, float)
+        d = origin - base_xy if base_xy is not None else heading
+        direction = d / np.linalg.norm(d) if np.linalg.norm(d) > 1e-6 else heading
+    # the part of the line inside the grid
+    lo, hi = np.array([x[0], y[0]]), np.array([x[-1], y[-1]])
+    ts = []
+    for a in range(2):
+        if abs(direction[a]) > 1e-12:
+            ts += [(lo[a] - origin[a]) / direction[a], (hi[a] - origin[a]) / direction[a]]
+    ts = np.sort(ts)
+    t0, t1 = (ts[1], ts[2]) if len(ts) == 4 else (ts[0], ts[1])
+    cell = abs(x[1] - x[0]) if len(x) > 1 else 0.05
+    s = np.arange(t0, t1 + 1e-9, cell)
+    return origin, direction, s
+
+
+def sample(x, y, z, points) -> np.ndarray:
+    from scipy.interpolate import RegularGridInterpolator
+
+    return RegularGridInterpolator((x, y), z, bounds_error=False, fill_value=np.nan)(points)
+
+
+def place_scan(scan: "scans.Scan", grid: dict, transform: "scans.Transform | None", fit: str | None,
+               fit_against: dict | None = None, key: str = "--terrain"):
+    """The scan on the run's grid: (Gridded, FitResult | None, Transform). Checks units and placement first."""
+    x, y, z_run = grid["x"], grid["y"], grid["z"]
+    pts = scans.densify_raster(scan, abs(x[1] - x[0]))
+    ext_scan = np.ptp(pts[:, :2], axis=0)
+    ext_run = np.array([np.ptp(x), np.ptp(y)]) + abs(x[1] - x[0])
+    size_s, size_r = float(np.max(ext_scan)), float(np.max(ext_run))
+    what = f"{scan.path.name} spans {ext_scan[0]:.4g} x {ext_scan[1]:.4g} (x, y) and {np.ptp(pts[:, 2]):.4g} in z"
+    if size_s > FAR_FACTOR * size_r:
+        raise UserError(f"{key}: {what}, {size_s / size_r:.0f} x the run's {ext_run[0]:.3g} x {ext_run[1]:.3g} m "
+                        f"terrain: a scan in millimetres or another unit? give it in metres")
+    if size_s < size_r / FAR_FACTOR:
+        raise UserError(f"{key}: {what}, 1/{size_r / max(size_s, 1e-12):.0f} of the run's {ext_run[0]:.3g} x "
+                        f"{ext_run[1]:.3g} m terrain: a scan in kilometres or another unit? give it in metres")
+    fit_result = None
+    if fit:
+        start = transform or scans.initial_guess(pts, x, y, z_run)
+        ref = fit_against or grid
+        fit_result = scans.fit_transform(pts, ref["x"], ref["y"], ref["z"], start, mode=fit)
+        transform = fit_result.transform
+    transform = transform or scans.Transform()
+    placed = transform.apply(pts)
+    gridded = scans.grid_points(placed, x, y)
+    common = np.isfinite(gridded.z) & np.isfinite(z_run)
+    lo, hi = placed.min(axis=0), placed.max(axis=0)
+    if common.sum() < max(3, 0.05 * min(z_run.size, len(placed))):
+        raise UserError(f"{key}: {scan.path.name} is far from the run: placed in the machine frame its points lie at "
+                        f"x {lo[0]:.4g}..{hi[0]:.4g}, y {lo[1]:.4g}..{hi[1]:.4g}, z {lo[2]:.4g}..{hi[2]:.4g} m, the "
+                        f"run's terrain covers x {x[0]:.3g}..{x[-1]:.3g}, y {y[0]:.3g}..{y[-1]:.3g} m "
+                        f"({int(common.sum())} common cells); give --transform x,y,z,yaw_deg or --fit-transform")
+    offset = float(np.median(gridded.z[common] - z_run[common]))
+    if abs(offset) > MAX_VERTICAL_OFFSET_M:
+        raise UserError(f"{key}: {scan.path.name} lies {offset:+.3g} m {'above' if offset > 0 else 'below'} the run's "
+                        f"terrain (median over {int(common.sum())} common cells); give --transform with its z or "
+                        f"--fit-transform")
+    return gridded, fit_result, transform
+
+
+def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference_initial: dict | None,
+                       label: str, change_threshold: float, margin_m: float) -> tuple[dict, dict]:
+    """The terrain block of comparison.json and the arrays the figures need."""
+    initial = read_terrain(run_dir / "terrain_initial.npz", "RUN_DIR")
+    final = read_terrain(run_dir / "terrain_final.npz", "RUN_DIR")
+    x, y, z0, z1 = initial["x"], initial["y"], initial["z"], final["z"]
+    base_xy, yaw = machine_pose(run_dir)
+    changes = [z1 - z0]
+    ref0 = ref1 = None
+    if reference_final is not None:
+        ref1 = reference_final
+        ref0 = reference_initial if reference_initial is not None else z0
+        changes.append(ref1 - ref0)
+    mask = dig_area(changes, change_threshold, int(round(margin_m / abs(x[1] - x[0]))))
+    cell = abs((x[1] - x[0]) * (y[1] - y[0]))
+    out = {"cell_m": float(abs(x[1] - x[0])), "change_threshold_m": change_threshold, "margin_m": margin_m,
+           "dig_area_m2": float(mask.sum() * cell)}
+    run = surface_metrics(z0, z1, x, y, mask, base_xy, yaw)
+    out.update(run)
+    arrays = dict(x=x, y=y, z0=z0, z1=z1, mask=mask, ref0=ref0, ref1=ref1, label=label)
+    if ref1 is not None:
+        ref = surface_metrics(ref0, ref1, x, y, mask, base_xy, yaw)
+        out.update({f"reference_{k}": v for k, v in ref.items()})
+        both = mask & np.isfinite(ref1) & np.isfinite(z1)
+        err = (z1 - ref1)[both]
+        covered = mask & np.isfinite(ref1)
+        out.update(
+            terrain_rmse_m=float(np.sqrt(np.mean(err ** 2))) if err.size else None,
+            terrain_bias_m=float(np.mean(err)) if err.size else None,
+            terrain_max_abs_error_m=float(np.max(np.abs(err))) if err.size else None,
+            reference_empty_cells=int(np.sum(~np.isfinite(ref1))),
+            reference_coverage_of_dig_area=float(covered.sum() / mask.sum()) if mask.any() else None)
+        for name in ("cut_volume_m3", "fill_volume_m3", "max_depth_m", "heave_height_m"):
+            r = ref[name]
+            out[name.replace("_m3", "").replace("_m", "") + "_relative_error"] = \
+                (run[name] - r) / r if r else None
+        if run["max_depth_xy_m"] and ref["max_depth_xy_m"]:
+            out["max_depth_position_error_m"] = float(np.hypot(*np.subtract(run["max_depth_xy_m"],
+                                                                             ref["max_depth_xy_m"])))
+    depth_xy = run["cut_centre_xy_m"]  # the dig line runs through the middle of the cut
+    if depth_xy is None and ref1 is not None:
+        depth_xy = ref["cut_centre_xy_m"]
+    origin, direction, s = dig_line(x, y, depth_xy, base_xy, yaw)
+    pts = origin[None] + s[:, None] * direction[None]
+    profile = {"s_m": s, "x_m": pts[:, 0], "y_m": pts[:, 1], "initial_z_m": sample(x, y, z0, pts),
+               "run_z_m": sample(x, y, z1, pts)}
+    if ref1 is not None:
+        profile["reference_z_m"] = sample(x, y, ref1, pts)
+        if reference_initial is not None:
+            profile["reference_initial_z_m"] = sample(x, y, ref0, pts)
+    out["dig_line"] = {"origin_xy_m": origin.tolist(), "direction_xy": direction.tolist()}
+    arrays["profile"] = profile
+    return out, arrays
+
+
+# ----------------------------------------------------------------------------------------------- joints
+def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(t, {joint: rad}) of a joint log: a CSV (`t` plus `<joint>` rad or `<joint>_deg`; a run's joints.csv too) or
+    a ROS bag (ROS 1 .bag, ROS 2 folder or .mcap/.db3) with sensor_msgs/JointState messages."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{key}: {path}: file not found")
+    if path.is_dir() or path.suffix.lower() in (".bag", ".mcap", ".db3"):
+        return _read_bag(path, key)
+    from ..scene import CsvProblem, read_motion_csv
+
+    try:
+        times, angles = read_motion_csv(path)
+    except CsvProblem as exc:
+        raise UserError(f"{key}: {path}: {exc}") from None
+    except OSError as exc:
+        raise UserError(f"{key}: {path}: cannot read ({exc.strerror})") from None
+    if not angles:
+        raise UserError(f"{key}: {path}: no joint columns besides t")
+    return np.asarray(times, float), {j: np.asarray(v, float) for j, v in angles.items()}
+
+
+def _read_bag(path: Path, key: str):
+    try:
+        from rosbags.highlevel import AnyReader
+    except ImportError:
+        raise UserError(f"{key}: {path}: reading ROS bags needs rosbags (pip install 'opera-taichi[studies]')") \
+            from None
+    rows: dict[str, list] = {}
+    times: list[float] = []
+    try:
+        bag_path = path.parent if path.suffix.lower() in (".mcap", ".db3") else path
+        from rosbags.typesys import Stores, get_typestore
+
+        # a bag without its message definitions (ROS 2 before Iron) reads with the standard ones
+        with AnyReader([bag_path], default_typestore=get_typestore(Stores.LATEST)) as reader:
+            conns = [c for c in reader.connections if c.msgtype.endswith("JointState")]
+            if not conns:
+                found = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
+                raise UserError(f"{key}: {path}: no sensor_msgs/JointState topic (topics: "
+                                f"{', '.join(found)[:200] or 'none'})")
+            named = [c for c in conns if c.topic.endswith("joint_states")] or conns
+            topic = named[0].topic
+            for conn, stamp, raw in reader.messages(connections=[c for c in named if c.topic == topic]):
+                msg = reader.deserialize(raw, conn.msgtype)
+                times.append(stamp * 1e-9)
+                for name, q in zip(msg.name, msg.position):
+                    rows.setdefault(name, []).append((len(times) - 1, float(q)))
+    except UserError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a broken bag
+        raise UserError(f"{key}: {path}: cannot read the bag ({type(exc).__name__}: {exc})") from None
+    t = np.asarray(times) - (times[0] if times else 0.0)
+    out = {}
+    for name, vals in rows.items():
+        idx = np.array([i for i, _ in vals])
+        out[name] = np.interp(t, t[idx], np.array([q for _, q in vals]))
+    if len(t) < 2 or not out:
+        raise UserError(f"{key}: {path}: fewer than two joint-state messages")
+    return t, out
+
+
+def run_joints(run_dir: Path, key: str = "RUN_DIR") -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    path = run_dir / "joints.csv"
+    if not path.is_file():
+        raise UserError(f"{key}: {run_dir} has no joints.csv (a run without a machine?)")
+    cols = read_csv_columns(path)
+    t = np.asarray(cols["t"], float)
+    return t, {name[:-2]: np.asarray(v, float) for name, v in cols.items() if name.endswith(".q")}
+
+
+def _smooth(v: np.ndarray, n: int) -> np.ndarray:
+    if n <= 1:
+        return v
+    return np.convolve(np.pad(v, (n // 2, n - 1 - n // 2), mode="edge"), np.ones(n) / n, mode="valid")
+
+
+def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
+    """The shift k (samples) with a[i + k] best matching b[i]: the largest correlation coefficient over the
+    overlapping parts (normalised per shift, so a short overlap is not favoured or penalised). k > 0: a is late."""
+    best, lag = -np.inf, 0
+    n = len(a)
+    for k in range(-max_lag, max_lag + 1):
+        x, y = (a[k:], b[:n - k]) if k >= 0 else (a[:n + k], b[-k:])
+        if len(x) < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
+            continue
+        r = np.corrcoef(x, y)[0, 1]
+        if r > best + 1e-12 or (abs(r - best) <= 1e-12 and abs(k) < abs(lag)):
+            best, lag = r, k
+    return lag
+
+
+def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str) -> tuple[dict, dict]:
+    """Per-joint rmse, lag and rate ratio on the common time span; the arrays for the figure."""
+    joints = [j for j in run if j in ref]
+    if not joints:
+        raise UserError(f"--joints: {ref_label} names no joint of the run (run: {', '.join(run)}; log: "
+                        f"{', '.join(ref)})")
+    t0, t1 = max(t_run[0], t_ref[0]), min(t_run[-1], t_ref[-1])
+    if not t1 - t0 > 2 * JOINT_DT:
+        raise UserError(f"--joints: {ref_label} spans t {t_ref[0]:.3g}..{t_ref[-1]:.3g} s, the run "
+                        f"{t_run[0]:.3g}..{t_run[-1]:.3g} s: no common time span")
+    t = np.arange(t0, t1 + 1e-12, JOINT_DT)
+    n_smooth = max(1, int(round(RATE_SMOOTHING_S / JOINT_DT)))
+    max_lag = int(min(MAX_LAG_S, (t1 - t0) / 3) / JOINT_DT)
+    per = {}
+    arrays = {"t": t, "joints": {}}
+    for j in joints:
+        a = np.interp(t, t_run, run[j])
+        b = np.interp(t, t_ref, ref[j])
+        lag = best_lag(a, b, max_lag)
+        ra = np.abs(np.gradient(_smooth(a, n_smooth), JOINT_DT))
+        rb = np.abs(np.gradient(_smooth(b, n_smooth), JOINT_DT))
+        pa, pb = float(np.percentile(ra, 90)), float(np.percentile(rb, 90))
+        per[j] = {"rmse_rad": float(np.sqrt(np.mean((a - b) ** 2))), "rmse_deg": math.degrees(
+            float(np.sqrt(np.mean((a - b) ** 2)))), "lag_s": lag * JOINT_DT,
+            "rate_ratio": pa / pb if pb > STILL_RATE else None,
+            "run_rate_p90_rad_s": pa, "reference_rate_p90_rad_s": pb}
+        arrays["joints"][j] = (a, b)
+    ratios = [v["rate_ratio"] for v in per.values() if v["rate_ratio"] is not None]
+    out = {"joints": per, "joints_common_span_s": [float(t0), float(t1)],
+           "joints_rmse_rad": float(np.mean([v["rmse_rad"] for v in per.values()])),
+           "joints_lag_s": float(np.median([v["lag_s"] for v in per.values()])),
+           "joints_rate_ratio": float(np.median(ratios)) if ratios else None}
+    return out, arrays
+
+
+# ----------------------------------------------------------------------------------------------- the command
+def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=None, transform=None,
+            fit: str | None = None, out=None, change_threshold: float = 0.02, margin_m: float = 0.25,
+            figures: bool = True) -> dict:
+    """Compare a run folder with a scan and/or a joint log, or with another run; write comparison.json,
+    profile.csv and the figures into `out` (default: the run folder). Returns the comparison."""
+    run_dir = run_folder(run_dir, "RUN_DIR")
+    if against is not None and (terrain or terrain_before or joints):
+        raise UserError("--against: compares two runs; give it without --terrain, --terrain-before and --joints")
+    if terrain_before is not None and terrain is None:
+        raise UserError("--terrain-before: needs --terrain (the scan after the dig)")
+    if (transform is not None or fit) and terrain is None:
+        raise UserError("--transform / --fit-transform: place a scan; give --terrain")
+    if not change_threshold > 0:
+        raise UserError(f"--change-threshold: expected a positive height in m, got {change_threshold!r}")
+    if not margin_m >= 0:
+        raise UserError(f"--margin: expected a distance in m >= 0, got {margin_m!r}")
+    if isinstance(transform, str):
+        transform = scans.Transform.parse(transform)
+    out_dir = Path(out) if out is not None else run_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result: dict = {"run": str(run_dir.resolve())}
+    figs: dict = {}
+    has_terrain = (run_dir / "terrain_final.npz").is_file()
+    ref_final = ref_initial = None
+    label = None
+    if against is not None:
+        other = run_folder(against, "--against")
+        result["against"] = str(Path(other).resolve())
+        label = f"run {other.name}"
+        grid = read_terrain(run_dir / "terrain_initial.npz", "RUN_DIR")
+        if has_terrain:
+            o0 = read_terrain(other / "terrain_initial.npz", "--against")
+            o1 = read_terrain(other / "terrain_final.npz", "--against")
+            pts = np.stack(np.meshgrid(grid["x"], grid["y"], indexing="ij"), axis=-1).reshape(-1, 2)
+            ref_final = sample(o1["x"], o1["y"], o1["z"], pts).reshape(grid["z"].shape)
+            ref_initial = sample(o0["x"], o0["y"], o0["z"], pts).reshape(grid["z"].shape)
+    elif terrain is not None:
+        grid = read_terrain(run_dir / "terrain_initial.npz", "RUN_DIR")
+        label = f"scan {Path(terrain).name}"
+        result["terrain_scan"] = str(Path(terrain).resolve())
+        fit_against = None
+        placement = {}
+        if terrain_before is not None:
+            before = scans.read_scan(terrain_before, "--terrain-before")
+            result["terrain_scan_before"] = str(Path(terrain_before).resolve())
+            g0, fit0, transform = place_scan(before, grid, transform, fit, key="--terrain-before")
+            ref_initial = g0.z
+            placement["fitted_on"] = "scan before the dig against the run's initial terrain" if fit else None
+            fit = None  # the same placement for the scan after the dig
+            if fit0 is not None:
+                placement.update(fit0.describe())
+            placement["before_empty_cells"] = g0.empty_cells
+        after = scans.read_scan(terrain, "--terrain")
+        g1, fit1, transform = place_scan(after, grid, transform, fit, fit_against, key="--terrain")
+        if fit1 is not None:
+            placement.update(fit1.describe())
+            placement["fitted_on"] = "scan after the dig against the run's initial terrain (dug area left out)"
+        if "mode" not in placement:
+            placement.update(transform.describe(), mode="given" if transform != scans.Transform() else "identity")
+        placement["empty_cells"] = g1.empty_cells
+        placement["points"] = int(len(after.points))
+        result["transform"] = placement
+        ref_final = g1.z
+    if has_terrain:
+        block, figs["terrain"] = terrain_comparison(run_dir, reference_final=ref_final, reference_initial=ref_initial,
+                                                    label=label or "", change_threshold=change_threshold,
+                                                    margin_m=margin_m)
+        result.update(block)
+    elif terrain is not None or against is not None:
+        if terrain is not None:
+            raise UserError(f"RUN_DIR: {run_dir} has no terrain_final.npz to compare the scan with")
+    if joints is not None or (against is not None and (run_dir / "joints.csv").is_file()):
+        if joints is not None:  # the user's file first: its problems are the ones to hear about
+            t_ref, q_ref = read_joint_log(joints)
+            ref_label = Path(joints).name
+            result["joint_log"] = str(Path(joints).resolve())
+        else:
+            t_ref, q_ref = run_joints(Path(against), "--against")
+            ref_label = f"run {Path(against).name}"
+        t_run, q_run = run_joints(run_dir)
+        block, figs["joints"] = joint_comparison(t_run, q_run, t_ref, q_ref, ref_label)
+        figs["joints"]["label"] = ref_label
+        result.update(block)
+    profile = figs.get("terrain", {}).get("profile")
+    if profile is not None:
+        _write_profile(out_dir / PROFILE_FILE, profile)
+    write_json(out_dir / COMPARISON_FILE, _clean(result))
+    if figures:
+        from . import figures as fig
+
+        try:
+            if "terrain" in figs:
+                fig.plot_terrain_comparison(figs["terrain"], out_dir / "comparison_terrain.png")
+                fig.plot_profile(figs["terrain"], out_dir / "comparison_profile.png")
+            if "joints" in figs:
+                fig.plot_joint_comparison(figs["joints"], out_dir / "comparison_joints.png")
+        except Exception as exc:  # noqa: BLE001 - a figure must never cost the numbers
+            import sys
+
+            print(f"warning: comparison figures not written ({type(exc).__name__}: {exc})", file=sys.stderr)
+    return result
+
+
+def _write_profile(path: Path, profile: dict) -> None:
+    names = list(profile)
+    data = np.column_stack([profile[n] for n in names])
+    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.6g")
+
+
+def _clean(value):
+    """JSON-safe: NaN and inf as null."""
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value

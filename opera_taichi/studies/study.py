@@ -1,0 +1,567 @@
+"""`study STUDY.yaml`: a base scene run at many parameter points on a Dask cluster, one table of metrics out.
+
+A study file (paths relative to it; every key checked, errors one line naming the key):
+
+    name: blade_depth                  # default: the file's stem
+    scene: ../scenes/blade_cut.yaml    # the base scene
+    set: {sim.duration: 1.5}           # --set overrides for every point
+    parameters:                        # --set paths to vary
+      tools.0.start.2: [0.0, 0.1]                 # a list of values
+      soil.overrides.friction_angle_deg: {range: [28, 36], num: 3}   # evenly spaced, ends included
+      soil.overrides.cohesion: {low: 0, high: 4000}                  # bounds, for random / lhs
+    sampling: grid                     # grid (every combination) | zip (lists side by side) | random | lhs
+    samples: 8                         # random / lhs
+    seed: 0
+    metrics: [manifest.real_time_factor, wrench.blade.fx.mean, compare.terrain_rmse_m]
+    reference: {terrain: scan.las, terrain_before: null, transform: null, fit_transform: null, joints: null,
+                against: null}         # what compare.* metrics compare against
+    out: studies/blade_depth           # the study folder (relative to the current directory); --out overrides
+
+The study folder holds runs/<point>/ (a run folder each, with point.json: the point's row), study.csv,
+study.parquet and study.png (each metric against each parameter). Finished points (point.json with status done and
+the same overrides) are kept and skipped when the study runs again; failed ones are run again. A failed run is a row
+with its status (bad input, diverged, error) and its one-line error; it never stops the study.
+
+Metrics (columns of the table):
+- `manifest.<key>[.<key>...]`, `summary.<key>...`, `comparison.<key>`: values from manifest.json, summary.json,
+  or `compare.<key>` from comparing the run with `reference` (comparison.json in the run folder);
+- `wrench.<tool>.<column>.<stat>`, `joints.<column>.<stat>`, `mass.<column>.<stat>`: a statistic of a CSV column
+  of tool_wrench.csv (rows of that tool), joints.csv, soil_mass.csv; stat: mean, median, max, min, abs_max, rms,
+  std, final;
+- a mapping {name, file, column, where: {column: value}, stat, t: [t0, t1]} for any CSV of the run folder, over a
+  time window.
+"""
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+
+STATS = ("mean", "median", "max", "min", "abs_max", "rms", "std", "final")
+CSV_SHORT = {"wrench": "tool_wrench.csv", "joints": "joints.csv", "mass": "soil_mass.csv"}
+POINT_FILE = "point.json"
+REFERENCE_KEYS = ("terrain", "terrain_before", "transform", "fit_transform", "joints", "against")
+STUDY_KEYS = ("name", "scene", "set", "parameters", "sampling", "samples", "seed", "metrics", "reference", "out",
+              "calibrate")
+
+
+@dataclass
+class Parameter:
+    path: str
+    values: list | None = None    # a list (or an expanded range)
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+
+
+@dataclass
+class Study:
+    source: Path
+    name: str
+    scene: Path
+    fixed: dict
+    parameters: list[Parameter]
+    sampling: str
+    samples: int
+    seed: int
+    metrics: list
+    reference: dict
+    out: Path
+    calibrate: dict | None = None
+    points: list[dict] = field(default_factory=list)
+
+    def metric_names(self) -> list[str]:
+        return [m if isinstance(m, str) else m["name"] for m in self.metrics]
+
+
+# ----------------------------------------------------------------------------------------------- the file
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _path(base: Path, value, key: str, label: str, must_exist: bool = True) -> Path:
+    if not isinstance(value, str) or not value.strip():
+        raise UserError(f"{label}: {key}: expected a file path, got {value!r}")
+    p = Path(value).expanduser()
+    p = p if p.is_absolute() else base / p
+    if must_exist and not p.exists():
+        raise UserError(f"{label}: {key}: no file at {p}")
+    return p.resolve()
+
+
+def _parameter(path: str, spec, label: str, bounds_only: bool = False) -> Parameter:
+    key = f"parameters.{path}"
+    if isinstance(spec, list):
+        if not spec:
+            raise UserError(f"{label}: {key}: an empty list")
+        return Parameter(path, values=list(spec))
+    if not isinstance(spec, dict):
+        raise UserError(f"{label}: {key}: expected a list of values, {{range: [a, b], num: n}} or {{low: a, high: b}}, "
+                        f"got {spec!r}")
+    allowed = {"values", "range", "num", "low", "high", "log"}
+    bad = sorted(set(spec) - allowed)
+    if bad:
+        raise UserError(f"{label}: {key}.{bad[0]}: unknown key; allowed: {', '.join(sorted(allowed))}")
+    if "values" in spec:
+        return _parameter(path, spec["values"], label)
+    if "range" in spec:
+        rng = spec["range"]
+        if not (isinstance(rng, list) and len(rng) == 2 and all(_is_num(v) for v in rng) and rng[1] > rng[0]):
+            raise UserError(f"{label}: {key}.range: expected [low, high] with low < high, got {rng!r}")
+        num = spec.get("num", 3)
+        if not (isinstance(num, int) and not isinstance(num, bool) and num >= 2):
+            raise UserError(f"{label}: {key}.num: expected an integer >= 2, got {num!r}")
+        return Parameter(path, values=[float(v) for v in np.linspace(rng[0], rng[1], num)], low=float(rng[0]),
+                         high=float(rng[1]))
+    lo, hi = spec.get("low"), spec.get("high")
+    if not (_is_num(lo) and _is_num(hi) and hi > lo):
+        raise UserError(f"{label}: {key}: expected low < high (numbers), got low {lo!r} high {hi!r}")
+    log = spec.get("log", False)
+    if not isinstance(log, bool) or (log and lo <= 0):
+        raise UserError(f"{label}: {key}.log: expected true or false (true needs low > 0), got {log!r}")
+    return Parameter(path, low=float(lo), high=float(hi), log=log)
+
+
+def _metric(spec, label: str, i: int):
+    key = f"metrics.{i}"
+    if isinstance(spec, str):
+        head, _, rest = spec.partition(".")
+        if head in ("manifest", "summary", "compare") and rest:
+            return spec
+        if head in CSV_SHORT:
+            parts = rest.split(".")
+            need = 3 if head == "wrench" else 2
+            if len(parts) >= need and parts[-1] in STATS:
+                return spec
+            form = "wrench.<tool>.<column>.<stat>" if head == "wrench" else f"{head}.<column>.<stat>"
+            raise UserError(f"{label}: {key}: expected {form} (stat: {', '.join(STATS)}), got {spec!r}")
+        raise UserError(f"{label}: {key}: expected manifest.<key>, summary.<key>, compare.<key>, "
+                        f"wrench.<tool>.<column>.<stat>, joints.<column>.<stat>, mass.<column>.<stat> or a mapping "
+                        f"{{name, file, column, stat}}, got {spec!r}")
+    if isinstance(spec, dict):
+        allowed = {"name", "file", "column", "where", "stat", "t"}
+        bad = sorted(set(spec) - allowed)
+        if bad:
+            raise UserError(f"{label}: {key}.{bad[0]}: unknown key; allowed: {', '.join(sorted(allowed))}")
+        for k in ("name", "file", "column"):
+            if not isinstance(spec.get(k), str):
+                raise UserError(f"{label}: {key}.{k}: required, a string")
+        if spec.get("stat", "mean") not in STATS:
+            raise UserError(f"{label}: {key}.stat: expected one of {', '.join(STATS)}, got {spec.get('stat')!r}")
+        t = spec.get("t")
+        if t is not None and not (isinstance(t, list) and len(t) == 2 and all(_is_num(v) for v in t)):
+            raise UserError(f"{label}: {key}.t: expected [t0, t1] in s, got {t!r}")
+        return dict(spec)
+    raise UserError(f"{label}: {key}: expected a string or a mapping, got {spec!r}")
+
+
+def load_study(path, out=None) -> Study:
+    """Reads and checks a study file, expands its points and checks each point's scene (UserError, one line)."""
+    from ..scene import _parse_yaml, _read_scene_text
+
+    label = str(path)
+    path = Path(path)
+    data = _parse_yaml(_read_scene_text(path, label), label)
+    if not isinstance(data, dict):
+        raise UserError(f"{label}: expected a mapping of study keys ({', '.join(STUDY_KEYS)})")
+    bad = sorted(set(data) - set(STUDY_KEYS))
+    if bad:
+        raise UserError(f"{label}: {bad[0]}: unknown key; allowed: {', '.join(STUDY_KEYS)}")
+    base = path.resolve().parent
+    if "scene" not in data:
+        raise UserError(f"{label}: scene: required, the base scene file")
+    scene = _path(base, data["scene"], "scene", label)
+    fixed = data.get("set") or {}
+    if not isinstance(fixed, dict):
+        raise UserError(f"{label}: set: expected a mapping of --set paths to values, got {fixed!r}")
+    params_in = data.get("parameters") or {}
+    calibrate = data.get("calibrate")
+    if not isinstance(params_in, dict) or (not params_in and calibrate is None):
+        raise UserError(f"{label}: parameters: expected a mapping of --set paths to values or ranges")
+    params = [_parameter(str(k), v, label) for k, v in params_in.items()]
+    sampling = data.get("sampling", "grid")
+    if sampling not in ("grid", "zip", "random", "lhs"):
+        raise UserError(f"{label}: sampling: expected grid, zip, random or lhs, got {sampling!r}")
+    samples = data.get("samples", 8)
+    if not (isinstance(samples, int) and not isinstance(samples, bool) and samples >= 1):
+        raise UserError(f"{label}: samples: expected a positive integer, got {samples!r}")
+    seed = data.get("seed", 0)
+    if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
+        raise UserError(f"{label}: seed: expected an integer >= 0, got {seed!r}")
+    metrics = data.get("metrics") or []
+    if not isinstance(metrics, list):
+        raise UserError(f"{label}: metrics: expected a list")
+    metrics = [_metric(m, label, i) for i, m in enumerate(metrics)]
+    reference = data.get("reference") or {}
+    if not isinstance(reference, dict):
+        raise UserError(f"{label}: reference: expected a mapping ({', '.join(REFERENCE_KEYS)})")
+    bad = sorted(set(reference) - set(REFERENCE_KEYS))
+    if bad:
+        raise UserError(f"{label}: reference.{bad[0]}: unknown key; allowed: {', '.join(REFERENCE_KEYS)}")
+    reference = {k: v for k, v in reference.items() if v is not None}
+    for k in ("terrain", "terrain_before", "joints", "against"):
+        if k in reference:
+            reference[k] = str(_path(base, reference[k], f"reference.{k}", label))
+    if any(isinstance(m, str) and m.startswith("compare.") for m in metrics) and not reference:
+        raise UserError(f"{label}: metrics: compare.* metrics need a `reference` (terrain, joints or against)")
+    name = data.get("name") or path.stem
+    out_dir = Path(out) if out is not None else Path(data["out"]) if data.get("out") else Path("studies") / name
+    study = Study(path.resolve(), str(name), scene, fixed, params, sampling, samples, seed, metrics, reference,
+                  out_dir.resolve(), calibrate)
+    if params_in:
+        study.points = expand_points(study, label)
+        check_points(study, study.points, label)
+    return study
+
+
+def expand_points(study: Study, label: str) -> list[dict]:
+    ps = study.parameters
+    if study.sampling in ("grid", "zip"):
+        missing = [p.path for p in ps if p.values is None]
+        if missing:
+            raise UserError(f"{label}: parameters.{missing[0]}: sampling {study.sampling} needs a list or a range "
+                            f"with num (low/high bounds are for random or lhs)")
+        if study.sampling == "zip":
+            lengths = {len(p.values) for p in ps}
+            if len(lengths) > 1:
+                raise UserError(f"{label}: parameters: sampling zip needs lists of one length, got "
+                                f"{', '.join(f'{p.path}: {len(p.values)}' for p in ps)}")
+            combos = list(zip(*(p.values for p in ps)))
+        else:
+            combos = list(itertools.product(*(p.values for p in ps)))
+        return [dict(zip((p.path for p in ps), c)) for c in combos]
+    missing = [p.path for p in ps if p.low is None]
+    if missing:
+        raise UserError(f"{label}: parameters.{missing[0]}: sampling {study.sampling} needs low and high (or a range)")
+    if study.sampling == "lhs":
+        from scipy.stats import qmc
+
+        unit = qmc.LatinHypercube(d=len(ps), seed=study.seed).random(study.samples)
+    else:
+        unit = np.random.default_rng(study.seed).random((study.samples, len(ps)))
+    return [{p.path: scale(p, u[k]) for k, p in enumerate(ps)} for u in unit]
+
+
+def scale(p: Parameter, u: float) -> float:
+    if p.log:
+        return float(math.exp(math.log(p.low) + u * (math.log(p.high) - math.log(p.low))))
+    return float(p.low + u * (p.high - p.low))
+
+
+def overrides(study: Study, point: dict) -> list[str]:
+    """The --set strings of a point (the study's fixed ones first, the point's after)."""
+    return [f"{k}={json.dumps(v)}" for k, v in {**study.fixed, **point}.items()]
+
+
+def check_points(study: Study, points: list[dict], label: str) -> None:
+    """Every point's scene loads (a parameter path that does not exist fails here, before any run)."""
+    from ..scene import load_scene
+
+    for point in points:
+        try:
+            load_scene(study.scene, overrides(study, point))
+        except UserError as exc:
+            raise UserError(f"{label}: parameters: {' '.join(str(exc).split())}") from None
+
+
+def point_id(index: int, study: Study, point: dict) -> str:
+    text = json.dumps({"scene": str(study.scene), "set": overrides(study, point)}, sort_keys=True)
+    return f"p{index:03d}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
+
+
+# ----------------------------------------------------------------------------------------------- metrics
+def _dig(data, keys: list[str]):
+    for k in keys:
+        if isinstance(data, dict) and k in data:
+            data = data[k]
+        else:
+            return None
+    return data
+
+
+def _stat(values: np.ndarray, stat: str):
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return None
+    return float({"mean": np.mean, "median": np.median, "max": np.max, "min": np.min,
+                  "abs_max": lambda a: np.max(np.abs(a)), "rms": lambda a: np.sqrt(np.mean(a ** 2)),
+                  "std": np.std, "final": lambda a: a[-1]}[stat](v))
+
+
+def csv_metric(run_dir: Path, file: str, column: str, stat: str, where: dict | None = None, t=None):
+    from ..recorders import read_csv_columns
+
+    path = run_dir / file
+    if not path.is_file():
+        return None
+    cols = read_csv_columns(path)
+    if column not in cols:
+        raise UserError(f"{file}: no column {column!r} (columns: {', '.join(cols)})")
+    keep = np.ones(len(cols[column]), bool)
+    for k, v in (where or {}).items():
+        if k not in cols:
+            raise UserError(f"{file}: no column {k!r} to select rows by")
+        keep &= np.array([str(c) == str(v) for c in cols[k]]) if isinstance(cols[k], list) else \
+            np.asarray(cols[k], float) == float(v)
+    if t is not None and "t" in cols:
+        tt = np.asarray(cols["t"], float)
+        keep &= (tt >= t[0]) & (tt <= t[1])
+    return _stat(np.asarray(cols[column], float)[keep], stat)
+
+
+def collect_metrics(run_dir: Path, metrics: list, reference: dict) -> dict:
+    """The metrics of a finished run folder (None where a file or key is missing)."""
+    run_dir = Path(run_dir)
+    out = {}
+    cache: dict = {}
+
+    def json_file(name):
+        if name not in cache:
+            try:
+                cache[name] = json.loads((run_dir / name).read_text())
+            except (OSError, ValueError):
+                cache[name] = None
+        return cache[name]
+
+    for m in metrics:
+        if isinstance(m, dict):
+            out[m["name"]] = csv_metric(run_dir, m["file"], m["column"], m.get("stat", "mean"), m.get("where"),
+                                        m.get("t"))
+            continue
+        head, _, rest = m.partition(".")
+        if head == "manifest":
+            out[m] = _dig(json_file("manifest.json"), rest.split("."))
+        elif head == "summary":
+            out[m] = _dig(json_file("summary.json"), rest.split("."))
+        elif head == "compare":
+            if "compare" not in cache:
+                from .compare import compare
+
+                cache["compare"] = compare(run_dir, terrain=reference.get("terrain"),
+                                           terrain_before=reference.get("terrain_before"),
+                                           joints=reference.get("joints"), against=reference.get("against"),
+                                           transform=reference.get("transform"),
+                                           fit=reference.get("fit_transform"), figures=False)
+            out[m] = _dig(cache["compare"], rest.split("."))
+        else:
+            parts = rest.split(".")
+            stat = parts[-1]
+            if head == "wrench":
+                out[m] = csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[1:-1]), stat, {"tool": parts[0]})
+            else:
+                out[m] = csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[:-1]), stat)
+    return {k: (v if v is None or isinstance(v, (int, float, str, bool)) else json.dumps(v)) for k, v in out.items()}
+
+
+# ----------------------------------------------------------------------------------------------- one point
+def run_point(task: dict) -> dict:
+    """Runs one point in this process (a Dask worker) and returns its row; never raises for a failed run."""
+    os.environ.setdefault("TI_CPU_MAX_NUM_THREADS", str(task.get("threads", 1)))
+    _own_kernel_cache()
+    from ..errors import DivergenceError
+    from ..recorders import write_json
+    from ..runner import run_scene
+    from ..scene import load_scene
+
+    run_dir = Path(task["run_dir"])
+    row = {"point": task["id"], **task["point"], "status": "error", "error": "", "wall_s": None,
+           "run_dir": str(run_dir)}
+    t0 = time.perf_counter()
+    try:
+        scene = load_scene(task["scene"], task["overrides"])
+        run_scene(scene, out_dir=run_dir, quiet=True, overwrite=True)
+        row.update(collect_metrics(run_dir, task["metrics"], task["reference"]))
+        if task.get("objective"):
+            from .calibrate import objective_value
+
+            row.update(objective_value(run_dir, task["objective"]))
+        row["status"] = "done"
+    except UserError as exc:
+        row.update(status="bad input", error=" ".join(str(exc).split()))
+    except DivergenceError as exc:
+        row.update(status="diverged", error=" ".join(str(exc).split()))
+    except Exception as exc:  # noqa: BLE001 - any failure is the point's row, never the study's end
+        row.update(status="error", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500])
+    row["wall_s"] = round(time.perf_counter() - t0, 3)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_json(run_dir / POINT_FILE, {"overrides": task["overrides"], "row": row})
+    return row
+
+
+def _own_kernel_cache() -> None:
+    """Each Dask worker its own Taichi offline cache (named by the worker, so it stays warm from one study to the
+    next): workers compiling into one cache at once can read each other's half-written kernels (tests/conftest.py)."""
+    try:
+        from dask.distributed import get_worker
+
+        name = str(get_worker().name)
+    except (ImportError, ValueError):
+        return  # not on a Dask worker
+    if os.environ.get("OPERA_TAICHI_WORKER_CACHE") == name:
+        return
+    base = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH") or str(Path.home() / ".cache" / "taichi" / "ticache")
+    os.environ["TI_OFFLINE_CACHE_FILE_PATH"] = f"{base}-dask-{''.join(c if c.isalnum() else '_' for c in name)}"
+    os.environ["OPERA_TAICHI_WORKER_CACHE"] = name
+
+
+def finished_row(run_dir: Path, sets: list[str]) -> dict | None:
+    try:
+        data = json.loads((run_dir / POINT_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    row = data.get("row") or {}
+    return row if data.get("overrides") == sets and row.get("status") == "done" else None
+
+
+# ----------------------------------------------------------------------------------------------- the cluster
+class Cluster:
+    """A Dask client on an existing scheduler, or on a LocalCluster of one single-threaded worker process per core
+    (each its own Taichi runtime, one CPU thread)."""
+
+    def __init__(self, scheduler: str | None, workers: int | None, quiet: bool = True):
+        try:
+            from dask.distributed import Client, LocalCluster
+        except ImportError:
+            raise UserError("study: needs dask[distributed] (pip install 'opera-taichi[studies]')") from None
+        import logging
+
+        self.cluster = None
+        if scheduler:
+            if workers is not None:
+                raise UserError("--workers: only for the local cluster; an existing cluster (--scheduler) has its own")
+            try:
+                self.client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise UserError(f"--scheduler: cannot reach {scheduler} ({type(exc).__name__}: {exc})") from None
+        else:
+            n = workers or os.cpu_count() or 1
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                        silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+        info = self.client.scheduler_info()
+        self.workers = max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+
+    def close(self):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def make_task(study: Study, index: int, point: dict, runs: Path, objective=None, sub: str = "runs") -> dict:
+    pid = point_id(index, study, point)
+    return {"id": pid, "point": point, "scene": str(study.scene), "overrides": overrides(study, point),
+            "run_dir": str(runs / pid), "metrics": study.metrics, "reference": study.reference, "threads": 1,
+            "objective": objective}
+
+
+def run_study(path, scheduler: str | None = None, workers: int | None = None, out=None, quiet: bool = False) -> Path:
+    """Runs a study (resumable) and writes its table and plots; returns the path of study.csv."""
+    study = load_study(path, out)
+    if study.calibrate is not None and not study.parameters:
+        raise UserError(f"{path}: parameters: none to study (a calibration: `calibrate {path}`)")
+    runs = study.out / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    tasks = [make_task(study, i, p, runs) for i, p in enumerate(study.points)]
+    rows: dict[str, dict] = {}
+    todo = []
+    for task in tasks:
+        done = None
+        for folder in sorted(runs.glob("*-" + task["id"].rsplit("-", 1)[1])):  # by content: an index may move
+            done = done or finished_row(folder, task["overrides"])
+        if done is not None:
+            done = {**done, "point": task["id"]}
+        if done is not None:
+            rows[task["id"]] = done
+        else:
+            todo.append(task)
+    say = (lambda *a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    say(f"study {study.name}: {len(tasks)} points, {len(rows)} finished before, {len(todo)} to run -> {study.out}")
+    wall0 = time.perf_counter()
+    if todo:
+        cluster = Cluster(scheduler, workers)
+        try:
+            from dask.distributed import as_completed
+
+            say(f"  on {cluster.workers} worker(s)")
+            futures = {cluster.client.submit(run_point, t, key=f"{study.name}-{t['id']}-{time.time_ns()}", pure=False):
+                       t for t in todo}
+            for k, fut in enumerate(as_completed(futures), start=1):
+                task = futures[fut]
+                try:
+                    row = fut.result()
+                except Exception as exc:  # noqa: BLE001 - a worker lost (killed, out of memory): the row says so
+                    row = {"point": task["id"], **task["point"], "status": "error", "run_dir": task["run_dir"],
+                           "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500], "wall_s": None}
+                rows[task["id"]] = row
+                say(f"  [{k}/{len(todo)}] {task['id']} {row['status']} ({row.get('wall_s')} s)"
+                    + (f": {row['error']}" if row.get("error") else ""))
+        finally:
+            cluster.close()
+    wall = time.perf_counter() - wall0
+    ordered = [rows[t["id"]] for t in tasks]
+    names = [p.path for p in study.parameters]
+    csv_path = write_table(study.out / "study", ordered, names, study.metric_names())
+    write_study_meta(study, wall, len(todo))
+    from .figures import plot_study
+
+    try:
+        plot_study(ordered, names, study.metric_names(), study.out / "study.png")
+    except Exception as exc:  # noqa: BLE001 - a plot must never cost the table
+        say(f"warning: study.png not written ({type(exc).__name__}: {exc})")
+    failed = sum(r["status"] != "done" for r in ordered)
+    say(f"study {study.name}: {len(ordered) - failed} done, {failed} failed, {wall:.1f} s")
+    return csv_path
+
+
+def write_study_meta(study: Study, wall: float, ran: int) -> None:
+    from ..recorders import write_json
+
+    write_json(study.out / "study.json", {"name": study.name, "study_file": str(study.source),
+                                          "scene": str(study.scene), "set": study.fixed,
+                                          "parameters": [p.__dict__ for p in study.parameters],
+                                          "sampling": study.sampling, "metrics": study.metric_names(),
+                                          "reference": study.reference, "points_run_now": ran,
+                                          "wall_time_s": round(wall, 3)})
+
+
+def write_table(stem: Path, rows: list[dict], params: list[str], metrics: list[str],
+                lead: tuple = ("point",), status: str = "status") -> Path:
+    """stem.csv and stem.parquet: point, parameters, status, metrics, error, wall_s, run_dir."""
+    import csv
+
+    extra = [k for r in rows for k in r if k not in params + metrics]
+    cols = [*lead, *params, status, *metrics]
+    cols += [k for k in dict.fromkeys(extra) if k not in cols]
+    csv_path = stem.with_suffix(".csv")
+    with open(csv_path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for r in rows:
+            w.writerow(["" if r.get(c) is None else r.get(c) for c in cols])
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = {}
+        for c in cols:
+            values = [r.get(c) for r in rows]
+            if all(v is None or (_is_num(v) or isinstance(v, float)) for v in values):
+                values = [None if v is None else float(v) for v in values]
+            elif not all(v is None or isinstance(v, str) for v in values):
+                values = [None if v is None else str(v) for v in values]
+            table[c] = values
+        pq.write_table(pa.table(table), stem.with_suffix(".parquet"))
+    except ImportError:
+        print("warning: study.parquet not written (pip install pyarrow)", file=sys.stderr)
+    return csv_path

@@ -1,0 +1,339 @@
+"""compare: a synthetic site with a known trench and heave, scanned with noise in another frame (LAS, PLY, GeoTIFF,
+XYZ), placed back by a given or fitted transform; the volumes, depth, heave and transform recovered; a run against
+itself gives zero; joint logs (rad, _deg, lag, half rate); bad input is one line, exit 2."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+laspy = pytest.importorskip("laspy")
+plyfile = pytest.importorskip("plyfile")
+tifffile = pytest.importorskip("tifffile")
+
+from opera_taichi.cli import main  # noqa: E402
+from opera_taichi.studies import compare as cmp  # noqa: E402
+from opera_taichi.studies import scan as scans  # noqa: E402
+
+CELL = 0.05
+X = 2.0 + CELL * (np.arange(160) + 0.5)      # 2 .. 10 m
+Y = -3.0 + CELL * (np.arange(120) + 0.5)     # -3 .. 3 m
+TRENCH = dict(x0=4.5, x1=7.0, half_width=0.5, depth=0.5, ramp=0.3)
+HEAVE = dict(xc=5.75, yc=1.2, sx=0.6, sy=0.25, h=0.3)   # a mound on the machine's left of the trench
+# scan frame -> machine frame (what compare must recover)
+TRUE = scans.Transform(x=-812.40, y=1533.25, z=-41.7, roll=math.radians(0.8), pitch=math.radians(-0.5),
+                       yaw=math.radians(12.0))
+
+
+def _smoothstep(u):
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * (3 - 2 * u)
+
+
+def ground(x, y, relief=True):
+    """The site before the dig: a gentle, irregular slope (relief that holds x, y and yaw), or flat."""
+    if not relief:
+        return np.zeros(np.broadcast(x, y).shape)
+    return 0.18 * np.sin(0.9 * x + 0.3) * np.cos(0.7 * y) + 0.04 * x - 0.06 * y + 0.1 * np.sin(1.7 * y + 0.4 * x)
+
+
+def trench(x, y):
+    t = TRENCH
+    fx = _smoothstep((x - t["x0"]) / t["ramp"]) * _smoothstep((t["x1"] - x) / t["ramp"])
+    fy = _smoothstep((t["half_width"] - np.abs(y)) / 0.15)
+    return -t["depth"] * fx * fy
+
+
+def heave(x, y):
+    """A smooth spoil mound of finite extent (semi-axes 2 sx, 2 sy)."""
+    h = HEAVE
+    r2 = ((x - h["xc"]) / (2 * h["sx"])) ** 2 + ((y - h["yc"]) / (2 * h["sy"])) ** 2
+    return h["h"] * np.maximum(0.0, 1.0 - r2) ** 2
+
+
+def truth():
+    """Cut and fill volumes of the change, integrated on a 1 cm grid."""
+    fx = np.arange(2.0, 10.0, 0.01) + 0.005
+    fy = np.arange(-3.0, 3.0, 0.01) + 0.005
+    gx, gy = np.meshgrid(fx, fy, indexing="ij")
+    return {"cut": float(-trench(gx, gy).sum() * 1e-4), "fill": float(heave(gx, gy).sum() * 1e-4)}
+
+
+def make_run(folder: Path, relief=True, joints=None) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    gx, gy = np.meshgrid(X, Y, indexing="ij")
+    z0 = ground(gx, gy, relief)
+    z1 = z0 + trench(gx, gy) + heave(gx, gy)
+    for name, z in (("terrain_initial.npz", z0), ("terrain_final.npz", z1)):
+        np.savez_compressed(folder / name, x=X, y=Y, z=z, z_all=z, t=0.0)
+    scene = {"name": "synthetic", "machine": {"base_pose": {"xyz": [0.0, 0.0, 0.0], "yaw": 0.0}}}
+    (folder / "manifest.json").write_text(json.dumps({"name": "synthetic", "status": "done", "scene": scene}))
+    if joints is not None:
+        t, q = joints
+        with open(folder / "joints.csv", "w") as fh:
+            fh.write("t," + ",".join(f"{j}.q,{j}.qd" for j in q) + "\n")
+            for i in range(len(t)):
+                fh.write(f"{t[i]:.4f}," + ",".join(f"{q[j][i]:.6f},0" for j in q) + "\n")
+    return folder
+
+
+def scan_points(after: bool, relief=True, density=2500.0, noise=0.004, seed=1):
+    """Random points of the true surface (machine frame) with noise, then put into the scan's frame."""
+    rng = np.random.default_rng(seed)
+    n = int(density * 8.0 * 6.0)
+    x = rng.uniform(2.0, 10.0, n)
+    y = rng.uniform(-3.0, 3.0, n)
+    z = ground(x, y, relief) + ((trench(x, y) + heave(x, y)) if after else 0.0) + rng.normal(0, noise, n)
+    machine = np.stack([x, y, z], axis=1)
+    rot = TRUE.matrix()
+    return (machine - [TRUE.x, TRUE.y, TRUE.z]) @ rot  # inverse: R^T (p - t)
+
+
+def write_las(path: Path, pts):
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.offsets = pts.min(axis=0)
+    header.scales = [0.001, 0.001, 0.001]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.write(str(path))
+
+
+def write_ply(path: Path, pts):
+    v = np.array([tuple(p) for p in pts.astype(np.float32)], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    # float32 cannot hold site coordinates to the mm: a PLY scan is usually local, so keep it near its origin
+    plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex")]).write(str(path))
+
+
+def write_geotiff(path: Path, after: bool, offset=(35000.0, -12000.0, 12.5), noise=0.004, units=9001):
+    """A north-up raster at CELL of the true surface with noise, shifted by `offset` (no rotation: GeoTIFF's tie
+    point and pixel scale carry a translation only)."""
+    rng = np.random.default_rng(5)
+    gx, gy = np.meshgrid(X, Y[::-1], indexing="xy")  # rows from north (max y) down
+    z = ground(gx, gy) + ((trench(gx, gy) + heave(gx, gy)) if after else 0.0) + rng.normal(0, noise, gx.shape)
+    z = (z + offset[2]).astype(np.float32)
+    z[:3, :5] = -9999.0  # a corner of nodata
+    geokeys = (1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3076, 0, 1, units)
+    extratags = [(33550, "d", 3, (CELL, CELL, 0.0)),
+                 (33922, "d", 6, (0.0, 0.0, 0.0, X[0] - CELL / 2 + offset[0], Y[-1] + CELL / 2 + offset[1], 0.0)),
+                 (34735, "H", len(geokeys), geokeys), (42113, "s", 0, "-9999")]
+    tifffile.imwrite(str(path), z, extratags=extratags)
+
+
+def placement_error(placed: dict, true: scans.Transform = TRUE) -> float:
+    """Largest distance (m) between where the fitted and the true transform put the site's corners and centre: the
+    transform's error where it matters (its translation alone swings with the smallest yaw error when the scan's
+    origin is a kilometre away, as a surveyor's site frame is)."""
+    fitted = scans.Transform(placed["x_m"], placed["y_m"], placed["z_m"], math.radians(placed["roll_deg"]),
+                             math.radians(placed["pitch_deg"]), math.radians(placed["yaw_deg"]))
+    site = np.array([[2, -3, 0], [10, -3, 0], [2, 3, 0], [10, 3, 0], [6, 0, 0]], float)
+    in_scan = (site - [true.x, true.y, true.z]) @ true.matrix()
+    return float(np.max(np.linalg.norm(fitted.apply(in_scan) - site, axis=1)))
+
+
+def check_terrain(result, tol=0.03):
+    tr = truth()
+    assert result["reference_cut_volume_m3"] == pytest.approx(tr["cut"], rel=tol)
+    assert result["reference_fill_volume_m3"] == pytest.approx(tr["fill"], rel=tol)
+    assert result["cut_volume_m3"] == pytest.approx(tr["cut"], rel=tol)
+    # the deepest point: the trench floor is flat, so any floor cell; its depth within the noise, its place inside
+    assert result["reference_max_depth_m"] == pytest.approx(TRENCH["depth"], abs=0.02)
+    x, y = result["reference_max_depth_xy_m"]
+    assert TRENCH["x0"] + TRENCH["ramp"] - CELL <= x <= TRENCH["x1"] - TRENCH["ramp"] + CELL and abs(y) <= 0.35 + CELL
+    hx, hy = result["reference_heave_xy_m"]
+    assert abs(hx - HEAVE["xc"]) <= CELL + 1e-9 and abs(hy - HEAVE["yc"]) <= CELL + 1e-9
+    assert result["reference_heave_height_m"] == pytest.approx(HEAVE["h"], abs=0.01)
+    assert result["reference_heave_side"] == "left" and result["heave_side"] == "left"
+    assert abs(result["terrain_bias_m"]) < 0.005 and result["terrain_rmse_m"] < 0.01
+
+
+def test_las_with_fitted_transform_recovers_trench_and_placement(tmp_path):
+    run = make_run(tmp_path / "run")
+    write_las(tmp_path / "before.las", scan_points(after=False, seed=2))
+    write_las(tmp_path / "after.laz", scan_points(after=True, seed=3))
+    result = cmp.compare(run, terrain=tmp_path / "after.laz", terrain_before=tmp_path / "before.las", fit="auto",
+                         out=tmp_path / "cmp")
+    placed = result["transform"]
+    assert placed["mode"] == "rigid"
+    assert placement_error(placed) < 0.02
+    for angle in ("roll", "pitch", "yaw"):
+        assert placed[f"{angle}_deg"] == pytest.approx(math.degrees(getattr(TRUE, angle)), abs=0.05), angle
+    assert placed["residual_rms_m"] < 0.01  # the scan's noise (4 mm) and the 1 mm LAS quantum
+    check_terrain(result)
+    saved = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    assert saved["cut_volume_m3"] == pytest.approx(result["cut_volume_m3"])
+    for png in ("comparison_terrain.png", "comparison_profile.png"):
+        assert (tmp_path / "cmp" / png).stat().st_size > 10_000
+    profile = np.genfromtxt(tmp_path / "cmp" / "profile.csv", delimiter=",", names=True)
+    assert np.nanmin(profile["reference_z_m"] - profile["reference_initial_z_m"]) == pytest.approx(-0.5, abs=0.03)
+
+
+def test_ply_with_given_transform(tmp_path):
+    run = make_run(tmp_path / "run")
+    local = scans.Transform(z=-3.0, yaw=math.radians(-30.0))  # a local scanner frame: small coordinates
+    rng = np.random.default_rng(7)
+    n = 120_000
+    x, y = rng.uniform(2.0, 10.0, n), rng.uniform(-3.0, 3.0, n)
+    z = ground(x, y) + trench(x, y) + heave(x, y) + rng.normal(0, 0.004, n)
+    pts = (np.stack([x, y, z], axis=1) - [local.x, local.y, local.z]) @ local.matrix()
+    write_ply(tmp_path / "after.ply", pts)
+    result = cmp.compare(run, terrain=tmp_path / "after.ply", transform="0,0,-3,-30", out=tmp_path / "cmp")
+    assert result["transform"]["mode"] == "given"
+    check_terrain(result)
+
+
+def test_geotiff_through_the_cli_and_a_plane_fit_on_flat_ground(tmp_path):
+    """Flat ground holds only z, roll and pitch: the fit says it is a plane fit and keeps the given x, y."""
+    run = make_run(tmp_path / "run")
+    write_geotiff(tmp_path / "after.tif", after=True)
+    out = tmp_path / "cmp"
+    code = main(["compare", str(run), "--terrain", str(tmp_path / "after.tif"), "--transform=-35000,12000,0,0",
+                 "--fit-transform", "--out", str(out)])
+    assert code == 0
+    result = json.loads((out / "comparison.json").read_text())
+    assert result["transform"]["mode"] == "rigid"  # the sloped site holds a rigid fit
+    assert placement_error(result["transform"], scans.Transform(-35000.0, 12000.0, -12.5)) < 0.02
+    check_terrain(result)
+    assert result["reference_empty_cells"] == 15  # the nodata corner, reported, not filled in
+    flat = make_run(tmp_path / "flat", relief=False)
+    pts = scan_points(after=True, relief=False) @ np.eye(3)
+    np.savetxt(tmp_path / "flat.xyz", pts, fmt="%.4f")
+    # x, y and yaw known (5 mm off at the site's centre), z 0.3 m off, roll and pitch unknown
+    centre = pts.mean(axis=0)
+    level = scans.Transform(yaw=TRUE.yaw)
+    t0 = TRUE.apply(centre[None])[0] + [0.004, -0.003, 0.3] - level.apply(centre[None])[0]
+    start = scans.Transform(*t0, 0.0, 0.0, TRUE.yaw)
+    placed = cmp.compare(flat, terrain=tmp_path / "flat.xyz", transform=start, fit="auto", out=tmp_path / "f")
+    assert placed["transform"]["mode"] == "plane"
+    assert placed["transform"]["fitted"] == ["z", "roll", "pitch"]  # x, y, yaw kept as given (5 mm off)
+    assert placement_error(placed["transform"]) < 0.02
+    assert placed["transform"]["roll_deg"] == pytest.approx(math.degrees(TRUE.roll), abs=0.05)
+    assert placed["transform"]["pitch_deg"] == pytest.approx(math.degrees(TRUE.pitch), abs=0.05)
+    check_terrain(placed)
+
+
+def test_run_against_itself_is_zero_and_joint_log_lag_and_rate(tmp_path):
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    same = cmp.compare(run, against=run, out=tmp_path / "self")
+    for key in ("terrain_rmse_m", "terrain_bias_m", "cut_volume_relative_error", "fill_volume_relative_error",
+                "joints_rmse_rad", "joints_lag_s", "max_depth_position_error_m"):
+        assert same[key] == 0.0, key
+    assert same["joints_rate_ratio"] == pytest.approx(1.0)
+    assert same["cut_volume_m3"] == pytest.approx(truth()["cut"], rel=0.03)
+    # a field log: the same motion 0.7 s earlier and twice as fast in degrees (the run moves at half its rate)
+    with open(tmp_path / "log.csv", "w") as fh:
+        fh.write("t,boom_joint_deg,arm_joint_deg\n")
+        for ti in np.arange(0.0, 20.0, 0.02):
+            tr = 2 * (ti + 0.7)  # the log at ti shows what the run shows at 2 (ti + 0.7)... only the rate matters
+            fh.write(f"{ti:.3f},{math.degrees(0.4 * math.sin(0.5 * tr)):.5f},"
+                     f"{math.degrees(1.0 + 0.3 * math.cos(0.4 * tr)):.5f}\n")
+    res = cmp.compare(run, joints=tmp_path / "log.csv", out=tmp_path / "log")
+    assert res["joints"]["boom_joint"]["rate_ratio"] == pytest.approx(0.5, rel=0.05)
+    assert res["joints_rate_ratio"] == pytest.approx(0.5, rel=0.05)
+    assert (tmp_path / "log" / "comparison_joints.png").stat().st_size > 10_000
+    # the same motion, delayed: the lag found by cross-correlation
+    with open(tmp_path / "late.csv", "w") as fh:
+        fh.write("t,boom_joint,arm_joint\n")
+        for ti in np.arange(0.0, 20.0, 0.02):
+            fh.write(f"{ti:.3f},{0.4 * math.sin(0.5 * (ti - 0.7)):.6f},{1.0 + 0.3 * math.cos(0.4 * (ti - 0.7)):.6f}\n")
+    late = cmp.compare(run, joints=tmp_path / "late.csv", out=tmp_path / "late")
+    assert late["joints_lag_s"] == pytest.approx(-0.7, abs=0.011)  # the run leads the log by 0.7 s
+    assert late["joints_rmse_rad"] > 0.05
+
+
+def _cli(args, capsys):
+    code = main(["compare", *map(str, args)])
+    err = capsys.readouterr().err.strip()
+    return code, err
+
+
+def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
+    run = make_run(tmp_path / "run")
+    (tmp_path / "junk.las").write_bytes(b"not a las file at all" * 10)
+    code, err = _cli([run, "--terrain", tmp_path / "junk.las"], capsys)
+    assert code == 2 and "junk.las: cannot read it as LAS" in err and "\n" not in err
+    mm = scan_points(after=True, density=50) @ TRUE.matrix().T + [TRUE.x, TRUE.y, TRUE.z]
+    np.savetxt(tmp_path / "mm.csv", mm * 1000.0, delimiter=",", header="x,y,z", comments="")
+    code, err = _cli([run, "--terrain", tmp_path / "mm.csv"], capsys)
+    assert code == 2 and "millimetres" in err and "spans 7998 x 5995" in err
+    far = scan_points(after=True, density=50)
+    np.savetxt(tmp_path / "far.xyz", far)
+    code, err = _cli([run, "--terrain", tmp_path / "far.xyz"], capsys)
+    assert code == 2 and "far from the run" in err and "--transform" in err
+    write_geotiff(tmp_path / "feet.tif", after=True, units=9002)
+    code, err = _cli([run, "--terrain", tmp_path / "feet.tif"], capsys)
+    assert code == 2 and "foot" in err
+    (tmp_path / "notime.csv").write_text("time,boom_joint\n0,0\n1,0.1\n")
+    code, err = _cli([run, "--joints", tmp_path / "notime.csv"], capsys)
+    assert code == 2 and "no `t` column" in err
+    code, err = _cli([run, "--terrain", tmp_path / "missing.las"], capsys)
+    assert code == 2 and "file not found" in err
+    code, err = _cli([run, "--terrain", tmp_path / "far.xyz", "--transform", "1,2,north"], capsys)
+    assert code == 2 and "--transform: expected x,y,z,yaw_deg" in err
+    code, err = _cli([tmp_path, "--terrain", tmp_path / "far.xyz"], capsys)
+    assert code == 2 and "not a run folder" in err
+
+
+def test_compare_command_runs_as_a_program(tmp_path):
+    run = make_run(tmp_path / "run")
+    cli = Path(__file__).resolve().parents[1] / "cli.py"
+    proc = subprocess.run([sys.executable, str(cli), "compare", str(run), "--against", str(run)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((run / "comparison.json").read_text())["terrain_rmse_m"] == 0.0
+
+
+def test_soil_preset_file_in_a_scene(tmp_path, capsys):
+    from opera_taichi.model import soil_parameters
+    from opera_taichi.scene import load_scene
+
+    scene_path = Path(__file__).resolve().parents[1] / "scenes" / "blade_cut.yaml"
+    (tmp_path / "fitted.yaml").write_text("preset: sand\nfriction_angle_deg: 31.5\ncohesion: 500\n"
+                                          "calibration: {loss: 0.1}\n")
+    scene = load_scene(scene_path, [f"soil.preset_file={tmp_path / 'fitted.yaml'}",
+                                    "soil.overrides={radius: 0.05, cohesion: 800}"])
+    bulk, _ = soil_parameters(scene.soil)
+    assert math.degrees(bulk.friction_angle) == pytest.approx(31.5)   # from the file
+    assert bulk.cohesion == 800.0 and bulk.radius == 0.05           # overrides win over the file
+    assert bulk.density == 1600.0                                   # the sand preset under both
+    (tmp_path / "bad.yaml").write_text("preset: sand\nfriction_angel_deg: 31.5\n")
+    code = main(["validate", str(scene_path), "--set", f"soil.preset_file={tmp_path / 'bad.yaml'}"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "soil.preset_file" in err and "friction_angel_deg: unknown key" in err and "\n" not in err
+    code = main(["validate", str(scene_path), "--set", f"soil.preset_file={tmp_path / 'fitted.yaml'}",
+                 "--set", "soil.preset=dirt"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "builds on preset 'sand'" in err
+
+
+def test_joint_log_from_a_ros2_bag(tmp_path):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    t = np.arange(0.0, 10.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    JointState, Header, Time = (ts.types[n] for n in ("sensor_msgs/msg/JointState", "std_msgs/msg/Header",
+                                                        "builtin_interfaces/msg/Time"))
+    with Writer(tmp_path / "bag", version=8) as writer:
+        conn = writer.add_connection("/zx120/joint_states", JointState.__msgtype__, typestore=ts)
+        other = writer.add_connection("/zx120/other_joint_states_not", JointState.__msgtype__, typestore=ts)
+        for ti in np.arange(0.0, 10.0, 0.02):
+            stamp = int(round((1.7e9 + ti) * 1e9))
+            lag = ti - 0.3   # the machine 0.3 s behind the run
+            msg = JointState(header=Header(stamp=Time(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id=""),
+                             name=["arm_joint", "boom_joint", "swing_joint"],
+                             position=np.array([1.0 + 0.3 * np.cos(0.4 * lag), 0.4 * np.sin(0.5 * lag), 0.0]),
+                             velocity=np.zeros(3), effort=np.zeros(3))
+            writer.write(conn, stamp, ts.serialize_cdr(msg, JointState.__msgtype__))
+            writer.write(other, stamp, ts.serialize_cdr(msg, JointState.__msgtype__))
+    res = cmp.compare(run, joints=tmp_path / "bag", out=tmp_path / "cmp")
+    assert set(res["joints"]) == {"arm_joint", "boom_joint"}  # swing_joint: not in the run
+    assert res["joints_lag_s"] == pytest.approx(-0.3, abs=0.011) and res["joints_rate_ratio"] == pytest.approx(1, 0.02)
