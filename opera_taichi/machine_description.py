@@ -27,7 +27,7 @@ PLACEHOLDER_MASS = 1.0      # kg: a link with geometry lighter than this is a st
 MOVABLE = ("revolute", "continuous", "prismatic")
 PYBULLET_MESH_SUFFIXES = (".obj", ".stl")
 CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joints", "masses", "tracks",
-               "struck_volume")
+               "struck_volume", "command_latency")
 ACTUATOR_KEYS = ("max_speed", "max_torque", "gain")
 TRACK_KEYS = ("wheel_radius", "wheel_mass", "x", "gauge", "friction", "max_wheel_torque")
 
@@ -53,6 +53,7 @@ class MachineDescription:
     tracks: dict | None
     warnings: list[str] = field(default_factory=list)
     struck_volume: dict[str, float] = field(default_factory=dict)   # m3 per soil link (a bucket's rated capacity)
+    command_latency: float = 0.0    # s, dead time before the machine acts on a command from a ROS bridge
 
 
 # ----------------------------------------------------------------------------------------- entry point
@@ -107,7 +108,13 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
         name=str(cfg.get("name") or robot.name), urdf_path=urdf_path, bullet_urdf_path=bullet_path,
         actuated_joints=actuated, actuators=actuators, joint_limits=limits, tip_link=tip_link,
         soil_links=soil_links, collision_meshes=collision_meshes, tracks=tracks, warnings=warnings,
-        struck_volume=_struck_volume(cfg, where, soil_links))
+        struck_volume=_struck_volume(cfg, where, soil_links),
+        command_latency=_latency(cfg.get("command_latency", 0.0), f"{where}: command_latency"))
+
+
+def _latency(value, where: str) -> float:
+    """Seconds >= 0 (0 allowed, unlike _positive)."""
+    return 0.0 if value in (0, 0.0) else _positive(value, where)
 
 
 def _struck_volume(cfg, where, soil_links) -> dict[str, float]:

@@ -61,7 +61,8 @@ class Observer:
 
 
 class ThreadedObserver(Observer):
-    """Latest wins: `snapshot(sim)` in the simulation's thread, `publish(snapshot)` on this observer's thread."""
+    """Latest wins: `snapshot(sim)` in the simulation's thread (None: nothing this step), `publish(snapshot)` on this
+    observer's thread."""
 
     def snapshot(self, sim):
         raise NotImplementedError
@@ -78,11 +79,19 @@ class ThreadedObserver(Observer):
         self._thread = threading.Thread(target=self._work, name=f"observer-{self.key}", daemon=True)
         self._thread.start()
 
+    def merge(self, older, newer):
+        """The snapshot that waits when `newer` comes before `older` was published: the newer (latest wins). A
+        publisher of several topics at their own rates merges them (latest wins per topic)."""
+        return newer
+
     def sample(self, sim) -> None:
         snap = self.snapshot(sim)
+        if snap is None:  # nothing to publish after this step
+            return
         with self._wake:
             if self._latest is not None:
                 self.skipped += 1
+                snap = self.merge(self._latest, snap)
             self._latest = snap
             self._wake.notify()
 
