@@ -24,7 +24,12 @@ def _one_line(exc: BaseException) -> str:
 def _cmd_validate(args) -> int:
     from . import model
 
-    model.check_scene(load_scene(args.scene, args.set))
+    scene = load_scene(args.scene, args.set)
+    checked = model.check_scene(scene)
+    if scene.bridge is not None:  # topic names and rate keys are checked against the machines
+        from .ros.topics import topic_table
+
+        topic_table(checked, scene.bridge)
     print(f"{args.scene}: ok")
     return 0
 
@@ -39,21 +44,80 @@ def _cmd_run(args) -> int:
         if args.scene is not None or args.set or args.out is not None or args.overwrite:
             raise UserError("--resume RUN_DIR: give no SCENE, --set, --out or --overwrite (the run folder holds its "
                             "scene)")
+        if args.replay:
+            raise UserError("--replay: not with --resume (the run folder's scene says whether it records a replay)")
         scene, status, ckpt = runner.resume_scene(Path(args.resume))
         if not args.quiet:
             print(f"resuming {args.resume} (status {status}) from {ckpt.name}", file=sys.stderr)
+        controller, extra = _bridge_parts(scene, args)
+        controller, extra = _view_parts(scene, args, controller, extra)
         result = runner.run_scene(scene, out_dir=Path(args.resume), arch=args.arch or scene.sim.arch,
-                                  quiet=args.quiet, checkpoint_every=args.checkpoint_every, resume=True)
+                                  quiet=args.quiet, checkpoint_every=args.checkpoint_every, resume=True,
+                                  controller=controller, observers=extra)
     else:
         if args.scene is None:
             raise UserError("run: a SCENE.yaml is required (or --resume RUN_DIR)")
         scene = load_scene(args.scene, args.set)
         if args.arch is not None:
             scene.sim.arch = args.arch
+        if args.replay:
+            scene.output.replay = True
+        controller, extra = _bridge_parts(scene, args)
+        controller, extra = _view_parts(scene, args, controller, extra)
         result = runner.run_scene(scene, out_dir=args.out, arch=scene.sim.arch, quiet=args.quiet,
-                                  checkpoint_every=args.checkpoint_every, overwrite=args.overwrite)
+                                  checkpoint_every=args.checkpoint_every, overwrite=args.overwrite,
+                                  controller=controller, observers=extra)
     if not args.quiet:
         print(result.out_dir)
+    return 0
+
+
+def _bridge_parts(scene, args):
+    """(controller, observers) for a ROS bridge (--ros1, --ros-tcp or the scene's `bridge`) and --pace."""
+    if scene.bridge is None and not (args.ros1 or args.ros_tcp or args.pace or args.bridge_after_motion):
+        return None, []
+    from .ros.bridge import run_parts
+
+    return run_parts(scene, ros1=args.ros1, ros_tcp=args.ros_tcp, pace=args.pace,
+                     after_motion=args.bridge_after_motion, quiet=args.quiet)
+
+
+def _view_parts(scene, args, controller, observers):
+    """--view: the live 3-D view (an observer) and its controller (Pause; joint sliders when nothing else commands
+    the machine: no motion script, no bridge)."""
+    if not args.view:
+        for flag, given in (("--view-port", args.view_port), ("--view-host", args.view_host),
+                            ("--view-rate", args.view_rate)):
+            if given is not None:
+                raise UserError(f"{flag}: only with --view")
+        return controller, observers
+    from .model import machine_entries
+    from .viewer.live import LiveView, ViewerController
+
+    if args.view_rate is not None and not args.view_rate > 0:
+        raise UserError(f"--view-rate: expected a positive number of frames per second, got {args.view_rate:g}")
+    scripted = any(motion is not None for _, _, motion in machine_entries(scene))
+    view = LiveView(host=args.view_host or "127.0.0.1", port=8080 if args.view_port is None else args.view_port,
+                    rate=args.view_rate or 10.0, teleop=controller is None and not scripted, quiet=args.quiet)
+    return ViewerController(view, controller), list(observers) + [view]
+
+
+def _cmd_view(args) -> int:
+    chosen = [flag for flag, given in (("--html", args.html), ("--mp4", args.mp4)) if given]
+    if len(chosen) > 1:
+        raise UserError("view: give one of --html FILE or --mp4 FILE (or neither, to serve the replay)")
+    if args.html:
+        from .viewer.playback import write_html
+
+        write_html(args.run_dir, args.html, quiet=args.quiet)
+    elif args.mp4:
+        from .viewer.video import write_mp4
+
+        write_mp4(args.run_dir, args.mp4, quiet=args.quiet)
+    else:
+        from .viewer.playback import serve
+
+        serve(args.run_dir, host=args.host, port=args.port, quiet=args.quiet)
     return 0
 
 
@@ -132,7 +196,41 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --out at a folder that holds a run: empty it and run there")
     run.add_argument("--resume", metavar="RUN_DIR",
                      help="continue a run that was killed or interrupted from its newest checkpoint")
+    bridge = run.add_mutually_exclusive_group()
+    bridge.add_argument("--ros1", action="store_true",
+                        help="ROS bridge: a ROS 1 node (rospy) on the master of ROS_MASTER_URI takes the machine's "
+                             "commands and publishes its state (README: Connect your ROS stack)")
+    bridge.add_argument("--ros-tcp", metavar="HOST:PORT",
+                        help="ROS bridge through Unity's ROS-TCP-Endpoint (ROS 1 or ROS 2, as the endpoint says)")
+    run.add_argument("--pace", choices=("realtime", "fast"),
+                     help="realtime: simulated time kept to the wall clock (default with a bridge); fast: as fast "
+                          "as it goes (default without)")
+    run.add_argument("--bridge-after-motion", action="store_true",
+                     help="with a bridge: run the scene's motion first, then take commands from ROS")
+    run.add_argument("--view", action="store_true",
+                     help="serve the live 3-D view at http://127.0.0.1:8080 while the run goes (needs the viewer "
+                          "extra); with no motion script its panel has joint sliders")
+    run.add_argument("--view-port", type=int, metavar="PORT", help="port of the live view (default 8080)")
+    run.add_argument("--view-host", metavar="HOST",
+                     help="address the live view listens on (default 127.0.0.1: this machine only)")
+    run.add_argument("--view-rate", type=float, metavar="HZ",
+                     help="live view frames per wall-clock second at most (default 10)")
+    run.add_argument("--replay", action="store_true",
+                     help="record replay.bin for `view RUN_DIR` (same as --set output.replay=true)")
     run.set_defaults(handler=_cmd_run)
+    view = commands.add_parser("view", help="replay a run recorded with --replay in the browser, or write it as "
+                                            "one HTML file or an MP4 video",
+                               description="Serve a run's replay (time slider, play/pause, speed) at "
+                                           "http://HOST:PORT, or write it as a self-contained HTML file (--html) "
+                                           "or an MP4 video (--mp4). The run must be recorded with --replay.")
+    view.add_argument("run_dir", metavar="RUN_DIR", help="run folder written by `run --replay`")
+    view.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
+    view.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    view.add_argument("--html", metavar="FILE", help="write one self-contained HTML file that plays the run "
+                                                     "with no server, then exit")
+    view.add_argument("--mp4", metavar="FILE", help="render the replay offscreen to an MP4 video, then exit")
+    view.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    view.set_defaults(handler=_cmd_view)
     validate = scene_command("validate", "check a scene (files, keys, joints) without running it")
     validate.set_defaults(handler=_cmd_validate)
     runs = commands.add_parser("runs", help="list the runs under a folder (status, simulated time, real-time "

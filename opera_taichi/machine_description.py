@@ -113,8 +113,10 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
 
 
 def _latency(value, where: str) -> float:
-    """Seconds >= 0 (0 allowed, unlike _positive)."""
-    return 0.0 if value in (0, 0.0) else _positive(value, where)
+    """Seconds >= 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise UserError(f"{where} must be a number of seconds >= 0, got {value!r}")
+    return float(value)
 
 
 def _struck_volume(cfg, where, soil_links) -> dict[str, float]:

@@ -63,6 +63,7 @@ class Browser:
                 time.sleep(0.1)
         self.ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60, suppress_origin=True)
         self._id = 0
+        self.events: list[str] = []
         self.send("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
                   mobile=False)
 
@@ -71,13 +72,32 @@ class Browser:
         self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
         while True:
             reply = json.loads(self.ws.recv())
+            if "method" in reply:
+                self.events.append(reply["method"])
             if reply.get("id") == self._id:
                 if "error" in reply:
                     raise RuntimeError(f"{method}: {reply['error']}")
                 return reply.get("result", {})
 
-    def navigate(self, url: str) -> None:
+    def navigate(self, url: str, timeout: float = 60.0) -> None:
+        """Open url and wait for its load event (a screenshot during the switch of documents fails)."""
+        self.send("Page.enable")
+        self.events = []
         self.send("Page.navigate", url=url)
+        deadline = time.monotonic() + timeout
+        self.ws.settimeout(1.0)
+        try:
+            while "Page.loadEventFired" not in self.events and time.monotonic() < deadline:
+                try:
+                    reply = json.loads(self.ws.recv())
+                except Exception:  # websocket timeout: poll again
+                    continue
+                if "method" in reply:
+                    self.events.append(reply["method"])
+        finally:
+            self.ws.settimeout(60)
+        if "Page.loadEventFired" not in self.events:
+            raise RuntimeError(f"{url} did not load in {timeout:.0f} s")
 
     def evaluate(self, expression: str):
         return self.send("Runtime.evaluate", expression=expression, returnByValue=True).get("result", {}).get("value")

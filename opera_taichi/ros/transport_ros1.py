@@ -1,0 +1,96 @@
+"""`--ros1`: a native ROS 1 node (rospy) registered with the master named by ROS_MASTER_URI.
+
+Messages travel as bytes serialised by rosbags (messages.py): each topic's rospy class is a raw-bytes message class
+(rospy's own AnyMsg pattern) that carries the real type name, md5 sum and definition, so the master, `rostopic` and
+every subscriber see the standard types.
+
+rospy is not on PyPI. Where it is not importable (a virtual environment), the import below appends Debian's
+/usr/lib/python3/dist-packages (where `apt-get install ros-core python3-*-msgs` puts it) to sys.path, after the
+environment's own packages, at the moment a ROS 1 bridge starts; a sourced ROS setup (PYTHONPATH) needs nothing.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import xmlrpc.client
+
+from ..errors import UserError
+from .messages import msgdef
+
+DEBIAN_DIST_PACKAGES = "/usr/lib/python3/dist-packages"
+APT_HINT = ("apt-get install ros-core python3-std-msgs python3-sensor-msgs python3-geometry-msgs python3-nav-msgs "
+            "python3-rosgraph-msgs python3-tf2-msgs")
+
+
+def import_rospy():
+    try:
+        import rospy
+    except ImportError:
+        if DEBIAN_DIST_PACKAGES not in sys.path and os.path.isdir(DEBIAN_DIST_PACKAGES):
+            sys.path.append(DEBIAN_DIST_PACKAGES)
+        try:
+            import rospy
+        except ImportError as exc:
+            raise UserError(f"--ros1: rospy (ROS 1) is not installed ({exc}); on Debian: {APT_HINT}") from None
+    return rospy
+
+
+def master_uri() -> str:
+    return os.environ.get("ROS_MASTER_URI") or "http://localhost:11311"
+
+
+def check_master() -> None:
+    """A one-line error now rather than a node that waits for a master forever."""
+    uri = master_uri()
+    try:
+        code, _, _ = xmlrpc.client.ServerProxy(uri).getPid("/opera_taichi_probe")
+    except (OSError, xmlrpc.client.Error) as exc:
+        raise UserError(f"--ros1: no ROS master at ROS_MASTER_URI={uri} ({exc}); start `roscore` or set "
+                        f"ROS_MASTER_URI") from None
+    if code != 1:
+        raise UserError(f"--ros1: ROS_MASTER_URI={uri} did not answer as a ROS master")
+
+
+class Ros1Transport:
+    protocol = "ROS1"
+    ros_version = 1
+
+    def __init__(self, store, node_name: str = "opera_taichi"):
+        check_master()
+        self.rospy = rospy = import_rospy()
+        self.store = store
+        self._classes: dict[str, type] = {}
+        self._pubs: dict[str, object] = {}
+        self._subs: list = []
+        # no signal handlers: SIGINT/SIGTERM end the run and close its folder (cli.py), not rospy
+        rospy.init_node(node_name, anonymous=True, disable_signals=True, argv=[sys.argv[0]])
+
+    def _raw_class(self, typename: str) -> type:
+        cls = self._classes.get(typename)
+        if cls is None:
+            text, md5 = msgdef(self.store, typename, 1)
+            cls = type(typename.replace("/", "_"), (self.rospy.AnyMsg,),
+                       {"_type": typename.replace("/msg/", "/"), "_md5sum": md5, "_full_text": text,
+                        "_has_header": False, "__slots__": []})
+            self._classes[typename] = cls
+        return cls
+
+    def advertise(self, topic: str, typename: str) -> None:
+        self._pubs[topic] = self.rospy.Publisher(topic, self._raw_class(typename), queue_size=10, tcp_nodelay=True)
+
+    def subscribe(self, topic: str, typename: str, on_bytes) -> None:
+        self._subs.append(self.rospy.Subscriber(topic, self._raw_class(typename), lambda m: on_bytes(m._buff),
+                                                queue_size=10, tcp_nodelay=True))
+
+    def publish(self, topic: str, data: bytes) -> None:
+        pub = self._pubs[topic]
+        msg = pub.data_class()
+        msg._buff = data
+        pub.publish(msg)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.unregister()
+        for p in self._pubs.values():
+            p.unregister()
+        self.rospy.signal_shutdown("opera-taichi run ended")

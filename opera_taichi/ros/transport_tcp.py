@@ -1,0 +1,190 @@
+"""`--ros-tcp HOST:PORT`: a client of Unity's ROS-TCP-Endpoint (v0.7.0), as OPERA's Unity simulators connect to it.
+
+The protocol, as the endpoint's server code reads it (ros_tcp_endpoint/client.py, server.py, tcp_sender.py):
+- every frame, both ways: uint32 LE length + UTF-8 destination, uint32 LE length + payload;
+- the endpoint speaks first: `__handshake` with JSON {"version": "v0.7.0", "metadata": "{\"protocol\": \"ROS1\"}"}
+  (or ROS2); the protocol chooses the payload format: ROS 1 serialisation or CDR (ROS 2, with its 4-byte
+  encapsulation header, as rclpy's serialize_message gives);
+- system commands are destinations starting with `__` and a JSON payload: `__subscribe` {topic, message_name}
+  asks the endpoint to forward a ROS topic to us, `__publish` {topic, message_name, queue_size, latch} lets us
+  publish on one; message_name is "pkg/Type". The ROS 2 endpoint drops the last byte of a command's JSON (Unity's
+  CDR strings end in NUL), so one is appended for ROS 2 only (the ROS 1 endpoint would reject it);
+- a destination that is a topic carries one serialised message; the endpoint answers mistakes with `__error` /
+  `__warn` / `__log` JSON {"text"}; an empty destination is a keep-alive.
+The endpoint has no `__remove_*` handlers (sending one drops the connection) and forwards subscribed topics only to
+its most recent connection. A lost connection is retried every second and the topics registered again.
+"""
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import sys
+import threading
+
+from ..errors import UserError
+
+HANDSHAKE_TIMEOUT = 10.0
+RECONNECT_INTERVAL = 1.0
+
+
+def parse_address(text: str, what: str = "--ros-tcp") -> tuple[str, int]:
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise UserError(f"{what}: expected HOST:PORT (e.g. 127.0.0.1:10000), got {text!r}")
+    return host.strip("[]"), int(port)
+
+
+def frame(destination: str, payload: bytes) -> bytes:
+    dest = destination.encode("utf-8")
+    return struct.pack("<I", len(dest)) + dest + struct.pack("<I", len(payload)) + payload
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    buf = bytearray(n)
+    view, pos = memoryview(buf), 0
+    while pos < n:
+        got = sock.recv_into(view[pos:], n - pos)
+        if not got:
+            raise ConnectionError("the endpoint closed the connection")
+        pos += got
+    return bytes(buf)
+
+
+def read_frame(sock: socket.socket) -> tuple[str, bytes]:
+    (n,) = struct.unpack("<I", _recv_exact(sock, 4))
+    destination = _recv_exact(sock, n).decode("utf-8").rstrip("\x00")
+    (m,) = struct.unpack("<I", _recv_exact(sock, 4))
+    return destination, _recv_exact(sock, m)
+
+
+class RosTcpTransport:
+    def __init__(self, address: str, log, *, connect_timeout: float = 10.0):
+        self.host, self.port = parse_address(address)
+        self._log = log
+        self._send_lock = threading.Lock()
+        self._closing = threading.Event()
+        self._subs: dict[str, tuple[str, object]] = {}
+        self._pubs: dict[str, str] = {}
+        self.sock = None
+        self.version = None
+        self.protocol = None
+        self.dropped = 0
+        self._connect(connect_timeout, first=True)
+        self.ros_version = 1 if self.protocol == "ROS1" else 2
+        self._reader = threading.Thread(target=self._read_loop, name="ros-tcp-reader", daemon=True)
+        self._reader.start()
+
+    # ------------------------------------------------------------------------------------------ connection
+    def _connect(self, timeout: float, first: bool = False) -> None:
+        where = f"{self.host}:{self.port}"
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=timeout)
+        except OSError as exc:
+            if first:
+                raise UserError(f"--ros-tcp: cannot connect to a ROS-TCP-Endpoint at {where} ({exc.strerror or exc}); "
+                                f"start it first (README: Connect your ROS stack)") from None
+            raise
+        try:
+            sock.settimeout(HANDSHAKE_TIMEOUT)
+            destination, payload = read_frame(sock)
+            if destination != "__handshake":
+                raise ValueError(f"the first message was {destination!r}, not __handshake")
+            hello = json.loads(payload.decode("utf-8").rstrip("\x00"))
+            protocol = json.loads(hello.get("metadata") or "{}").get("protocol", "ROS1")
+            if protocol not in ("ROS1", "ROS2"):
+                raise ValueError(f"unknown protocol {protocol!r}")
+        except (OSError, ValueError, ConnectionError) as exc:
+            sock.close()
+            if first:
+                raise UserError(f"--ros-tcp: {where} did not greet as a ROS-TCP-Endpoint ({exc})") from None
+            raise ConnectionError(str(exc)) from None
+        if self.protocol is not None and protocol != self.protocol:
+            sock.close()
+            raise ConnectionError(f"the endpoint at {where} now speaks {protocol}, not {self.protocol}")
+        sock.settimeout(None)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.version, self.protocol = hello.get("version"), protocol
+        self.sock = sock
+        for topic, (typename, _) in self._subs.items():
+            self._command("__subscribe", {"topic": topic, "message_name": typename.replace("/msg/", "/")})
+        for topic, typename in self._pubs.items():
+            self._command("__publish", {"topic": topic, "message_name": typename.replace("/msg/", "/"),
+                                        "queue_size": 10, "latch": False})
+
+    def _send(self, data: bytes) -> None:
+        sock = self.sock
+        if sock is None:
+            self.dropped += 1
+            return
+        with self._send_lock:
+            try:
+                sock.sendall(data)
+            except OSError:
+                self.dropped += 1   # the reader notices the broken connection and reconnects
+
+    def _command(self, name: str, params: dict) -> None:
+        text = json.dumps(params) + ("\x00" if self.protocol == "ROS2" else "")
+        self._send(frame(name, text.encode("utf-8")))
+
+    def _read_loop(self) -> None:
+        while not self._closing.is_set():
+            sock = self.sock
+            try:
+                if sock is None:
+                    raise ConnectionError("not connected")
+                destination, payload = read_frame(sock)
+            except (OSError, ConnectionError) as exc:
+                if self._closing.is_set():
+                    return
+                self.sock = None
+                if sock is not None:
+                    sock.close()
+                    self._log(("tcp", "lost"), f"ros-tcp: lost the endpoint at {self.host}:{self.port} ({exc}); "
+                                               f"reconnecting every {RECONNECT_INTERVAL:g} s")
+                self._closing.wait(RECONNECT_INTERVAL)
+                try:
+                    self._connect(HANDSHAKE_TIMEOUT)
+                    print(f"ros-tcp: reconnected to {self.host}:{self.port}", file=sys.stderr)
+                except (OSError, ConnectionError):
+                    pass
+                continue
+            if destination.startswith("__"):
+                self._system(destination, payload)
+            elif destination:
+                sub = self._subs.get(destination)
+                if sub is not None:
+                    sub[1](payload)
+
+    def _system(self, destination: str, payload: bytes) -> None:
+        if destination in ("__error", "__warn", "__log"):
+            try:
+                text = json.loads(payload.decode("utf-8").rstrip("\x00")).get("text", "")
+            except ValueError:
+                text = payload[:200].decode("utf-8", "replace")
+            if destination != "__log":
+                self._log(("tcp", text), f"ros-tcp endpoint {destination[2:]}: {text}")
+
+    # ------------------------------------------------------------------------------------------ transport
+    def advertise(self, topic: str, typename: str) -> None:
+        self._pubs[topic] = typename
+        self._command("__publish", {"topic": topic, "message_name": typename.replace("/msg/", "/"),
+                                    "queue_size": 10, "latch": False})
+
+    def subscribe(self, topic: str, typename: str, on_bytes) -> None:
+        self._subs[topic] = (typename, on_bytes)
+        self._command("__subscribe", {"topic": topic, "message_name": typename.replace("/msg/", "/")})
+
+    def publish(self, topic: str, data: bytes) -> None:
+        self._send(frame(topic, data))
+
+    def close(self) -> None:
+        self._closing.set()
+        sock, self.sock = self.sock, None
+        if sock is not None:
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            sock.close()
+        self._reader.join(timeout=5.0)

@@ -1,0 +1,198 @@
+"""The 3-D viewer without a browser: the replay file (what is recorded is what comes back; a killed run keeps its
+frames; a torn tail is skipped), the MP4, the teleop controller and the viewer's Pause, and bad input (exit 2, one
+line). The browser tests are in test_viewer_browser.py."""
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("viser")
+
+from opera_taichi import cli  # noqa: E402
+from opera_taichi.recorders import read_csv_columns  # noqa: E402
+from opera_taichi.viewer.replay import REPLAY_FILE, ReplayReader, open_run  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENE = ROOT / "scenes" / "zx120_excavation.yaml"
+COARSE = ["--set", "soil.overrides.radius=0.12", "--set", "output.plots=false"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A coarse excavation, 3 s simulated, recorded with --replay at 10 Hz, with its final particles."""
+    out = tmp_path_factory.mktemp("viewer") / "run"
+    rc = cli.main(["run", str(SCENE), "--out", str(out), "--quiet", "--replay", *COARSE, "--set", "sim.duration=3",
+                   "--set", "output.particles_final=true"])
+    assert rc == 0
+    return out
+
+
+def test_replay_holds_every_frame_as_recorded(run):
+    reader = open_run(run)
+    assert len(reader) == 31                                   # t = 0, 0.1, ..., 3.0
+    assert np.allclose(reader.times, np.arange(31) * 0.1)
+    manifest = json.loads((run / "manifest.json").read_text())
+    assert reader.info.n_particles == manifest["particles"]
+    assert [m.name for m in reader.info.machines] == ["zx120"]
+    assert reader.info.tools[0].name == "bucket_link" and reader.info.tools[0].owner == "zx120"
+    # particles: the last frame is the final state, to the uint16 quantisation step (domain span / 65535)
+    final = np.load(run / "particles_final.npz")
+    last = reader.frame(len(reader) - 1)
+    step = reader.box.span / 65535
+    assert np.all(np.abs(last.positions - final["positions"]) <= step * 0.5 + 1e-6)
+    assert np.allclose(last.speeds, np.linalg.norm(final["velocities"], axis=1), rtol=2e-3, atol=1e-4)
+    # joints: what joints.csv says at the same instants
+    cols = read_csv_columns(run / "joints.csv")
+    for i in (0, 15, 30):
+        row = int(np.argmin(np.abs(cols["t"] - reader.times[i])))
+        frame = reader.frame(i)
+        q = frame.machines["zx120"]["q"]
+        for k, joint in enumerate(reader.info.machines[0].joints):
+            assert q[k] == pytest.approx(cols[f"{joint}.q"][row], abs=1e-6)
+    # the arm moved: the recorded frames are not all the same pose
+    assert abs(reader.frame(30).machines["zx120"]["q"][2] - reader.frame(0).machines["zx120"]["q"][2]) > 0.05
+
+
+def test_a_torn_last_record_is_skipped(run, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    path = copy / REPLAY_FILE
+    data = path.read_bytes()
+    full = len(ReplayReader(path))
+    path.write_bytes(data[:-100])                       # killed in the middle of writing the last frame
+    assert len(ReplayReader(path)) == full - 1
+    path.write_bytes(data + b"OTRP" + b"\x00" * 7)       # a record header with nothing after it
+    assert len(ReplayReader(path)) == full
+
+
+def test_a_killed_run_keeps_its_frames(tmp_path):
+    out = tmp_path / "killed"
+    cmd = [sys.executable, str(ROOT / "cli.py"), "run", str(SCENE), "--out", str(out), "--quiet", "--replay",
+           *COARSE, "--set", "sim.duration=30"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 90
+        frames = 0
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (out / REPLAY_FILE).is_file():
+                frames = len(ReplayReader(out / REPLAY_FILE))
+                if frames >= 8:
+                    break
+            time.sleep(0.2)
+        assert frames >= 8, proc.stderr.read().decode() if proc.poll() is not None else "no frames in 90 s"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    reader = open_run(out)                     # the process died: the manifest still says running
+    assert len(reader) >= 8
+    assert reader.frame(len(reader) - 1).t == pytest.approx(0.1 * (len(reader) - 1))
+
+
+def test_mp4_has_one_frame_per_recorded_frame(run, tmp_path):
+    import imageio_ffmpeg
+
+    out = tmp_path / "run.mp4"
+    assert cli.main(["view", str(run), "--mp4", str(out), "--quiet"]) == 0
+    frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(out))
+    assert frames == len(open_run(run))
+    assert seconds == pytest.approx(3.1, abs=0.15)     # played at the recording rate: real time
+
+
+def test_teleop_sliders_command_the_machine_and_pause_holds_the_loop():
+    import opera_taichi as ot
+    from opera_taichi.observers import RunContext
+    from opera_taichi.viewer.live import LiveView, ViewerController
+
+    sim = ot.Simulation.from_scene(SCENE, overrides={"soil.overrides.radius": 0.12, "motion": None})
+    view = LiveView(port=free_port(), teleop=True, quiet=True)
+    try:
+        view.start(sim, RunContext(out=None))
+        controller = ViewerController(view)
+        boom = sim.machine.joint_names.index("boom_joint")
+        q0 = sim.machine.joint_states()[0][boom]
+        assert view.sliders[("zx120", "boom_joint")].value == pytest.approx(np.degrees(q0), abs=0.5)
+        target = q0 + 0.3                                           # lower the boom by 0.3 rad
+        view.sliders[("zx120", "boom_joint")].value = float(np.degrees(target))
+        ctrl = controller.control(sim, sim.t + sim.model.dt)
+        assert ctrl.source == "teleop"
+        assert ctrl.machines["zx120"].q_target["boom_joint"] == pytest.approx(target)
+        for _ in range(400):                                        # 0.4 s: the boom follows the slider
+            sim.step(controller.control(sim, sim.t + sim.model.dt))
+        assert sim.machine.joint_states()[0][boom] > q0 + 0.05
+
+        view.running.clear()                                        # the viewer's Pause
+        done = threading.Event()
+        worker = threading.Thread(target=lambda: (controller.control(sim, sim.t + sim.model.dt), done.set()))
+        worker.start()
+        worker.join(timeout=0.5)
+        assert worker.is_alive() and not done.is_set()              # the loop waits for its next command
+        view.running.set()                                          # Resume
+        assert done.wait(timeout=10)
+        worker.join()
+    finally:
+        view.close(sim, "done", "")
+        sim.close()
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+def _one_line_exit_2(capsys, argv, *must):
+    rc = cli.main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    for text in must:
+        assert text in err, (text, err)
+
+
+def test_view_refuses_what_is_not_a_recorded_run(run, tmp_path, capsys):
+    _one_line_exit_2(capsys, ["view", str(tmp_path / "absent")], "is not a folder")
+    (tmp_path / "empty").mkdir()
+    _one_line_exit_2(capsys, ["view", str(tmp_path / "empty")], "not a run folder", "manifest.json")
+    (tmp_path / "garbled").mkdir()
+    (tmp_path / "garbled" / "manifest.json").write_text("{not json")
+    _one_line_exit_2(capsys, ["view", str(tmp_path / "garbled")], "unreadable manifest")
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "manifest.json").write_text('{"name": "somebody else\'s"}')
+    _one_line_exit_2(capsys, ["view", str(tmp_path / "foreign")], "not an opera-taichi run manifest")
+    no_replay = tmp_path / "no_replay"
+    shutil.copytree(run, no_replay)
+    (no_replay / REPLAY_FILE).unlink()
+    _one_line_exit_2(capsys, ["view", str(no_replay)], "recorded without a replay", "--replay")
+    bad = tmp_path / "bad_replay"
+    shutil.copytree(run, bad)
+    (bad / REPLAY_FILE).write_bytes(b"this is not a replay")
+    _one_line_exit_2(capsys, ["view", str(bad), "--html", str(tmp_path / "x.html")], "not an opera-taichi replay")
+    if os.geteuid() != 0:  # root reads any file
+        locked = tmp_path / "locked"
+        shutil.copytree(run, locked)
+        (locked / REPLAY_FILE).chmod(0)
+        _one_line_exit_2(capsys, ["view", str(locked)], "cannot read the replay")
+
+
+def test_a_port_in_use_is_one_line_exit_2(run, capsys, tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        _one_line_exit_2(capsys, ["view", str(run), "--port", str(port)], f"--port: port {port}", "in use")
+        # run --view fails at once, before the soil is built and nothing is written
+        _one_line_exit_2(capsys, ["run", str(SCENE), "--view", "--view-port", str(port), "--out",
+                                  str(tmp_path / "never")], f"--view-port: port {port}", "in use")
+        assert not (tmp_path / "never" / "manifest.json").exists()
+    _one_line_exit_2(capsys, ["run", str(SCENE), "--view-port", "8080"], "--view-port: only with --view")
+    _one_line_exit_2(capsys, ["view", str(run), "--port", "70000"], "not a TCP port")
