@@ -287,13 +287,28 @@ def mass_in_tools(sim, planes: list[np.ndarray]) -> list[float]:
     return [float(parts["masses"][m].sum()) for m in inside_tools(sim, planes, parts["positions"])]
 
 
-def ground_and_all_heightmaps(sim, planes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(z, z_all) on the model's terrain grid: soil resting on the ground (grains inside a tool's hull left out,
-    so a loaded bucket over the trench is not read as a heap), and every grain."""
+def carried_by_tools(sim, positions: np.ndarray) -> np.ndarray:
+    """Grains a tool carries: inside its convex hull, or heaped on it (above its lowest point, within its outline
+    seen from above). Soil under a tool, or beside it, is not carried."""
+    from scipy.spatial import Delaunay
+
+    carried = np.zeros(len(positions), bool)
+    for i, b in enumerate(sim.model.bindings):
+        p, q, _, _ = sim.tool_pose(i)
+        hull = b.mesh.convex_hull.vertices @ quat_to_matrix(q).T + p
+        outline = Delaunay(hull[:, :2])
+        above = positions[:, 2] > hull[:, 2].min()
+        if np.any(above):
+            carried[np.nonzero(above)[0][outline.find_simplex(positions[above, :2]) >= 0]] = True
+    return carried
+
+
+def ground_and_all_heightmaps(sim, planes: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(z, z_all) on the model's terrain grid: soil resting on the ground (what tools carry left out, so a loaded
+    bucket over the trench is not read as a heap), and every grain."""
     grid, soil = sim.model.soil.grid, sim.soil
     z_all = soil.heightmap(grid.x, grid.y)
-    masks = inside_tools(sim, planes, soil.particles()["positions"]) if planes else []
-    carried = np.logical_or.reduce(masks) if masks else None
+    carried = carried_by_tools(sim, soil.particles()["positions"]) if sim.model.bindings else None
     if carried is None or not np.any(carried):
         return z_all, z_all
     return soil.heightmap(grid.x, grid.y, exclude=carried), z_all

@@ -133,3 +133,20 @@ def test_version_help_and_usage_errors(capsys):
     assert cli.main(["run", "x.yaml", "--arch", "tpu"]) == 2
     assert "invalid choice: 'tpu'" in capsys.readouterr().err
     assert cli.main(["frobnicate"]) == 2
+
+
+@pytest.mark.parametrize("passed, code", [(True, 0), (False, 1), (None, 0)])
+def test_validate_physics_exits_1_when_its_gate_fails(monkeypatch, capsys, passed, code, tmp_path):
+    """A FAIL is an exit status a script can see; a run shown without a gate is not a failure. Below the gate's
+    calibrated resolution the command says so."""
+    from opera_taichi.validation import cases
+
+    def fake_run_case(case, params, resolution, out_dir, arch, quiet):
+        return dict(case=case, metric="draft", measured=2.0, reference=1.0, relative_error=1.0, passed=passed,
+                    run_dir=str(tmp_path / "run"))
+
+    monkeypatch.setattr(cases, "run_case", fake_run_case)
+    assert cli.main(["validate-physics", "blade_cut", "--resolution", "coarse"]) == code
+    captured = capsys.readouterr()
+    assert ("FAIL" in captured.out) == (passed is False)
+    assert "coarser than the 20 the blade_cut gate is calibrated at" in captured.err
