@@ -30,7 +30,7 @@ from .paths import cache_dir
 from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
 from .tool_sdf import tool_sdf
 
-SOLVER_VERSION = 14
+SOLVER_VERSION = 15  # 15: the kernels gained sleeping; same physics, other round-off, so beds settle anew
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
