@@ -124,6 +124,7 @@ PART_WIDTH = PART_LOST_MASS + 3
 
 # tools row layout
 T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2, 3, 4, 5, 8, 9, 12, 21, 24
+T_BS = 27         # bounding sphere of the SDF grid (link-frame centre, radius): no contact outside it
 T_WIDTH = 32
 
 FACE_GROUND = 4   # face ids: 0-3 domain walls (x-, x+, y-, y+), 4 ground top, 5 + 5k + f pit k faces
@@ -227,7 +228,8 @@ def cohesion_force(gap, prm: ti.template()):
 # ----------------------------------------------------------------------------------------------- pair forces
 @ti.kernel
 def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, surf_id: I32_2, prm: F64_1, dt: ti.f64):
+                rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, surf_id: I32_2, prm: F64_1, dt: ti.f64,
+                blk_list: I32_1, block: ti.i32):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -237,7 +239,11 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
     """
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
-    for i in range(n_act):
+    # only the blocks mark_blocks listed: in the others all are asleep with sleeping partners, every pair skipped
+    for slot in range(blk_list[0] * block):
+        i = blk_list[slot // block + 1] * block + slot % block
+        if i >= n_act:
+            continue
         x_i = kin[i, 0]
         v_i = kin[i, 1]
         w_i = kin[i, 2]
@@ -486,21 +492,77 @@ def _rotation_from_vector(phi):
 
 
 # ----------------------------------------------------------------------------------------------- integration
+@ti.func
+def _mark_hot(i, block, blk_hot: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(), rev_off: ti.template(),
+              rev_holder: ti.template()):
+    """Particle i is awake for the next substep: its block and the blocks of all its partners take part in it."""
+    blk_hot[i // block] = 1
+    for e in range(nbr_off[i], nbr_off[i + 1]):
+        blk_hot[nbr_j[e] // block] = 1
+    for q in range(rev_off[i], rev_off[i + 1]):
+        blk_hot[rev_holder[q] // block] = 1
+
+
+@ti.kernel
+def mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_hot: I32_1, blk_active: I32_1,
+                blk_box: KIN, blk_list: I32_1):
+    """Which blocks of particles take part in this substep: hot ones (marked by the last step: an awake particle in
+    them or among their partners; all of them after a rebuild) and those whose bounding box meets a tool's sphere.
+    The others are asleep with sleeping partners only and out of every tool's reach, so computing them would
+    change nothing: a sleeping bed costs what its blocks cost to skip, whatever its size. skip = 0: all active.
+    blk_list[0] = the number of active blocks, blk_list[1:] their indices (in no fixed order: each block's work
+    is the same whichever thread does it, and the sums are taken in block order)."""
+    n_blocks = (n_act + block - 1) // block
+    blk_list[0] = 0
+    for b in range(n_blocks):
+        active = 1
+        if skip != 0 and blk_hot[b] == 0:
+            active = 0
+            lo = blk_box[b, 0]
+            hi = blk_box[b, 1]
+            for t in range(MAX_TOOLS):
+                if tools[t, T_ON] > 0.0:
+                    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
+                        _tool_rotation(tools, t) @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+                    d = ti.max(lo, ti.min(centre, hi)) - centre
+                    if d.dot(d) <= tools[t, T_BS + 3] * tools[t, T_BS + 3]:
+                        active = 1
+        blk_active[b] = active
+        blk_hot[b] = 0
+        if active != 0:
+            blk_list[ti.atomic_add(blk_list[0], 1) + 1] = b
+
+
+@ti.kernel
+def fill_rev_holder(n_act: ti.i32, nbr_off: I32_1, rev_pos: I32_1, rev_holder: I32_1):
+    """rev_holder[slot] = the particle that holds the pair of each reverse slot."""
+    for i in range(n_act):
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            rev_holder[rev_pos[e]] = i
+
+
 @ti.kernel
 def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1,
          pair_out: PAIR_OUT, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
-         prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64, block: ti.i32) -> ti.f64:
+         prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64, block: ti.i32,
+         blk_active: I32_1, blk_list: I32_1, blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1,
+         rev_holder: I32_1) -> ti.f64:
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
     ground and walls, tools), advance it (symplectic Euler), then move the tools.
 
     block: particles per reduction block (reduction_block(n_act)). Returns the largest squared displacement since
     the last neighbour build (HUGE when a particle left the domain, so the caller rebuilds and drops it from the
-    lists).
+    lists). Blocks that mark_blocks left inactive are skipped (all asleep, no partner awake, no tool near: nothing
+    would change); each particle awake after its step marks its block and its partners' blocks hot, and the block's
+    bounding box is kept for mark_blocks' tool test.
     """
     stat[S_DISP2] = 0.0
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     n_blocks = (n_act + block - 1) // block
-    for blk in range(n_blocks):
+    for kb in range(blk_list[0]):
+        blk = blk_list[kb + 1]
+        box_lo = vec3(HUGE)
+        box_hi = vec3(-HUGE)
         disp2_max = ti.f64(0.0)
         speed2_max = ti.f64(0.0)
         nonfinite = ti.f64(0.0)
@@ -525,6 +587,10 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                                     woken = True
                     if woken:
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
+                        _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+                    x_b = kin[i, 0]
+                    box_lo = ti.min(box_lo, x_b)
+                    box_hi = ti.max(box_hi, x_b)
                 else:
                     x = kin[i, 0]
                     v = kin[i, 1]
@@ -658,6 +724,8 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                         kin[i, 0] = x
                         kin[i, 1] = v
                         kin[i, 2] = w
+                        box_lo = ti.min(box_lo, x)
+                        box_hi = ti.max(box_hi, x)
                         dx = x - vec3(ref[0], ref[1], ref[2])
                         speed2 = v.dot(v)
                         if not (speed2 < HUGE and dx.dot(dx) < HUGE):  # NaN fails every comparison
@@ -674,8 +742,16 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
                                     kin[i, 1] = vec3(0.0)
                                     kin[i, 2] = vec3(0.0)
                             tool_bits = (tool_bits & TOOL_MASK) | (calm << CALM_SHIFT)
+                            if calm < sleep_steps:
+                                _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+                        else:
+                            blk_hot[blk] = 1
                     if tool_bits != bits_in:
                         surf_id[i, TOOL_BITS] = tool_bits
+            else:  # (inactive: left the domain; a rebuild follows)
+                blk_hot[blk] = 1
+        blk_box[blk, 0] = box_lo
+        blk_box[blk, 1] = box_hi
         ti.atomic_max(stat[S_DISP2], disp2_max)
         ti.atomic_max(stat[S_SPEED2], speed2_max)
         for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
@@ -689,8 +765,9 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
     for _ in range(1):
         acc = ti.Vector.zero(ti.f64, PART_WIDTH)
         for blk in range(n_blocks):
-            for c in ti.static(range(PART_WIDTH)):
-                acc[c] += partial[blk, c]
+            if blk_active[blk] != 0:  # (a skipped block's row is stale; it would have added zeros)
+                for c in ti.static(range(PART_WIDTH)):
+                    acc[c] += partial[blk, c]
         for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
             tool_acc[t, c] += acc[6 * t + c]
         stat[S_LOST_MASS] += acc[PART_LOST_MASS]
@@ -814,36 +891,95 @@ def gather_particles(n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP
             surf_h_out[k, s] = surf_h[o, s]
 
 
+FULL_STENCIL = tuple((dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+
+
+@ti.kernel
+def mark_moved_cells(n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I32_1, x_ref: REF, bucket: I32_1,
+                     order: I32_1, order_inv: I32_1, moved: I32_1, prm: F64_1, mask: ti.i32):
+    """Between bin/sort and the gather, for a rebuild that keeps the lists of still neighbourhoods: moved[b] = 1
+    for each bucket that holds a cell a listed particle left, entered or moved in since the last build (or left
+    the domain from); order_inv[old index] = new index."""
+    for b in range(mask + 2):
+        moved[b] = 0
+    for k in range(n):
+        order_inv[order[k]] = k
+    for o in range(n):
+        ref = x_ref[o]
+        x = kin[o, 0]
+        if o >= n_listed:
+            if flags[o] == 1:
+                moved[bucket[o]] = 1
+        elif flags[o] == 0 or x[0] != ref[0] or x[1] != ref[1] or x[2] != ref[2]:
+            moved[ti.cast(_morton(_cell_of(vec3(ref[0], ref[1], ref[2]), prm)) & ti.cast(mask, ti.i64), ti.i32)] = 1
+            if flags[o] == 1:
+                moved[bucket[o]] = 1
+
+
+@ti.func
+def _still_around(x_i, moved: ti.template(), prm: ti.template(), mask):
+    """Whether no cell of the 27 around x_i's shares a bucket with a cell where anything moved."""
+    sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
+    still = True
+    for d in ti.static(FULL_STENCIL):
+        code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
+        if moved[ti.cast(code & ti.cast(mask, ti.i64), ti.i32)] != 0:
+            still = False
+    return still
+
+
 @ti.kernel
 def count_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, nbr_off: I32_1,
-                    prm: F64_1, mask: ti.i32) -> ti.i32:
+                    prm: F64_1, mask: ti.i32, keep_still: ti.i32, moved: I32_1, order: I32_1, old_off: I32_1,
+                    kept: I32_1) -> ti.i32:
     """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i found through the
     half stencil (a half list: each pair once, held by one of the two); then the prefix sum (nbr_off[i] is
-    where i's list starts). Returns the entry count."""
+    where i's list starts). Returns the entry count.
+
+    keep_still = 1 (mark_moved_cells ran): a particle none of whose 27 cells saw anything move since the last
+    build keeps its old list (kept[i] = 1): the same particles at the same places, found in the same order (the
+    sort keeps the order within a cell), so the search would give exactly that list. A sleeping bed is then not
+    searched again whenever the soil at the tool needs new lists."""
     nbr_off[0] = 0
     for i in range(n_act):
         x_i = kin[i, 0]
         r_i = prop[i][0]
         extra = prm[P_COH_D] + prm[P_SKIN]
         count = 0
-        sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
-        for d in ti.static(HALF_STENCIL):
-            code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
-            b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
-            first = starts[b]
-            if ti.static(d == (0, 0, 0)):
-                first = ti.max(first, i + 1)  # own cell: each pair once, by its lower index
-            for j in range(first, starts[b + 1]):
-                if cell[j] == code:  # buckets mix cells: keep only this cell's particles
-                    dx = x_i - kin[j, 0]
-                    reach = r_i + prop[j][0] + extra
-                    if dx.dot(dx) < reach * reach:
-                        count += 1
+        kept[i] = 0
+        if keep_still != 0:
+            if _still_around(x_i, moved, prm, mask):
+                kept[i] = 1
+                o_i = order[i]
+                count = old_off[o_i + 1] - old_off[o_i]
+        if kept[i] == 0:
+            count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask)
         nbr_off[i + 1] = count
     ti.loop_config(serialize=True)
     for i in range(n_act):
         nbr_off[i + 1] += nbr_off[i]
     return nbr_off[n_act]
+
+
+@ti.func
+def _count_found(i, x_i, r_i, extra, kin: ti.template(), prop: ti.template(), cell: ti.template(),
+                 starts: ti.template(), prm: ti.template(), mask):
+    """How many particles i's half stencil finds within reach (its list's length)."""
+    count = 0
+    sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
+    for d in ti.static(HALF_STENCIL):
+        code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
+        b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+        first = starts[b]
+        if ti.static(d == (0, 0, 0)):
+            first = ti.max(first, i + 1)  # own cell: each pair once, by its lower index
+        for j in range(first, starts[b + 1]):
+            if cell[j] == code:  # buckets mix cells: keep only this cell's particles
+                dx = x_i - kin[j, 0]
+                reach = r_i + prop[j][0] + extra
+                if dx.dot(dx) < reach * reach:
+                    count += 1
+    return count
 
 
 @ti.func
@@ -862,11 +998,12 @@ def _old_history(o_i, o_j, old_off: ti.template(), old_j: ti.template(), old_h: 
 @ti.kernel
 def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, order: I32_1,
                    old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                   x_ref: REF, prm: F64_1, mask: ti.i32):
+                   x_ref: REF, prm: F64_1, mask: ti.i32, kept: I32_1, order_inv: I32_1):
     """Write the half lists counted by count_neighbors, carrying each pair's springs over from the old lists.
 
     Particles are already sorted (new index = slot; order[new] = old). Also records the positions the skin
-    criterion is measured from.
+    criterion is measured from. A list kept (count_neighbors) is copied with its partners renumbered
+    (order_inv: old -> new index) and the springs the search would have carried over.
     """
     for i in range(n_act):
         x_i = kin[i, 0]
@@ -874,27 +1011,49 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
         extra = prm[P_COH_D] + prm[P_SKIN]
         e = nbr_off[i]
         o_i = order[i]
-        sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
-        for d in ti.static(HALF_STENCIL):
-            code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
-            b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
-            first = starts[b]
-            if ti.static(d == (0, 0, 0)):
-                first = ti.max(first, i + 1)
-            for j in range(first, starts[b + 1]):
-                if cell[j] == code:
-                    dx = x_i - kin[j, 0]
-                    d2 = dx.dot(dx)
-                    r_sum = r_i + prop[j][0]
-                    reach = r_sum + extra
-                    if d2 < reach * reach:
-                        nbr_j[e] = j
-                        h = vec6f(0.0)
-                        if d2 < r_sum * r_sum:  # only touching pairs have springs that matter
-                            h = _old_history(o_i, order[j], old_off, old_j, old_h)
-                        nbr_h[e] = h
-                        e += 1
+        if kept[i] != 0:
+            for s in range(old_off[o_i], old_off[o_i + 1]):
+                j = order_inv[old_j[s]]
+                nbr_j[e] = j
+                dx = x_i - kin[j, 0]
+                r_sum = r_i + prop[j][0]
+                h = vec6f(0.0)
+                if dx.dot(dx) < r_sum * r_sum:
+                    h = old_h[s]
+                nbr_h[e] = h
+                e += 1
+        else:
+            _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h, nbr_j,
+                        nbr_h, prm, mask)
         x_ref[i] = vec4(x_i[0], x_i[1], x_i[2], _clearance(x_i, _pit_of(x_i, prm), prm))
+
+
+@ti.func
+def _fill_found(i, o_i, x_i, r_i, extra, e0, kin: ti.template(), prop: ti.template(), cell: ti.template(),
+                starts: ti.template(), order: ti.template(), old_off: ti.template(), old_j: ti.template(),
+                old_h: ti.template(), nbr_j: ti.template(), nbr_h: ti.template(), prm: ti.template(), mask):
+    """Write i's list from its half stencil, from entry e0 on."""
+    e = e0
+    sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
+    for d in ti.static(HALF_STENCIL):
+        code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
+        b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+        first = starts[b]
+        if ti.static(d == (0, 0, 0)):
+            first = ti.max(first, i + 1)
+        for j in range(first, starts[b + 1]):
+            if cell[j] == code:
+                dx = x_i - kin[j, 0]
+                d2 = dx.dot(dx)
+                r_sum = r_i + prop[j][0]
+                reach = r_sum + extra
+                if d2 < reach * reach:
+                    nbr_j[e] = j
+                    h = vec6f(0.0)
+                    if d2 < r_sum * r_sum:  # only touching pairs have springs that matter
+                        h = _old_history(o_i, order[j], old_off, old_j, old_h)
+                    nbr_h[e] = h
+                    e += 1
 
 
 @ti.kernel

@@ -30,7 +30,9 @@ from .paths import cache_dir
 from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
 from .tool_sdf import tool_sdf
 
-SOLVER_VERSION = 15  # 15: the kernels gained sleeping; same physics, other round-off, so beds settle anew
+MORTON_TABLE_PER_PARTICLE = 16
+MORTON_TABLE_MAX = 1 << 21
+SOLVER_VERSION = 16  # 16: a larger cell hash table (other particle order, other round-off); sleeping blocks skipped
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
@@ -126,11 +128,15 @@ def _substep_graph():
                          nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3f, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
                          flags=(ti.i32, 1), x_ref=(dem.vec4, 1), rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1),
                          surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2), tools=(ti.f64, 2), tool_acc=(ti.f64, 2),
-                         sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2))
+                         sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2), blk_hot=(ti.i32, 1),
+                         blk_active=(ti.i32, 1), blk_box=(dem.vec3, 2), rev_holder=(ti.i32, 1),
+                         blk_list=(ti.i32, 1))
             sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in kinds.items()}
             sym.update(n_act=arg(kind.SCALAR, "n_act", ti.i32), dt=arg(kind.SCALAR, "dt", ti.f64),
-                       bulk_damping=arg(kind.SCALAR, "bulk_damping", ti.f64), block=arg(kind.SCALAR, "block", ti.i32))
+                       bulk_damping=arg(kind.SCALAR, "bulk_damping", ti.f64), block=arg(kind.SCALAR, "block", ti.i32),
+                       skip=arg(kind.SCALAR, "skip", ti.i32))
             builder = ti.graph.GraphBuilder()
+            builder.dispatch(dem.mark_blocks, *(sym[a] for a in _MARK_ARGS))
             builder.dispatch(dem.pair_forces, *(sym[a] for a in _PAIR_ARGS))
             builder.dispatch(dem.step, *(sym[a] for a in _STEP_ARGS))
             _GRAPH["graph"] = builder.compile()
@@ -139,10 +145,12 @@ def _substep_graph():
     return _GRAPH["graph"]
 
 
+_MARK_ARGS = ("n_act", "block", "skip", "tools", "blk_hot", "blk_active", "blk_box", "blk_list")
 _PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "pair_out", "own", "surf_id", "prm",
-              "dt")
+              "dt", "blk_list", "block")
 _STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "pair_out", "surf_id", "surf_h",
-              "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping", "block")
+              "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping", "block", "blk_active",
+              "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "rev_holder")
 
 
 class DemSoil:
@@ -159,6 +167,10 @@ class DemSoil:
         self.micro = micro
         self.surface = surface  # (x, y, z[ix, iy]): fill beds to this surface instead of level (soil.terrain)
         self.sleep = bool(sleep)
+        # skip whole blocks of sleeping particles (mark_blocks), keep the lists of still neighbourhoods at a
+        # rebuild (count_neighbors); False does all the work, for the same bits
+        self.skip_sleeping_blocks = True
+        self.keep_still_lists = True
         self._on_settle = on_settle
         self.r_max = micro.radius * (1.0 + micro.polydispersity)
         self.domain_min, self.domain_max = _check_domain(domain_min, domain_max)
@@ -305,10 +317,14 @@ class DemSoil:
             full[:len(value)] = value
             target.from_numpy(full)
         self.n_act, self._entries = n_act, e
+        self._lists_built = True  # (the lists of a build, with their reference positions)
+        self._blocks_changed()
         self.time = float(state["time"])
         packing = float(state["bed_packing"])
         self.bed_packing = None if np.isnan(packing) else packing
+        spheres = self._tools_host[:, dem.T_BS:dem.T_BS + 4].copy()  # (the registered tools', not the state's)
         self._tools_host[:] = state["tools_host"]
+        self._tools_host[:, dem.T_BS:dem.T_BS + 4] = spheres
         self._tools_dirty = True
 
     # ------------------------------------------------------------------------------------------- set-up
@@ -351,6 +367,15 @@ class DemSoil:
         table = 64
         while table < 2 * cap:
             table *= 2
+        # Buckets are the low bits of the cells' Morton codes: in a table that spans fewer cells than the domain,
+        # distant cells share buckets, the sort interleaves them and a block of particles spans the domain (and
+        # cannot be skipped while anything near either end moves). Grow it to the domain's extent where that costs
+        # at most MORTON_TABLE_PER_PARTICLE entries per particle.
+        cell = 2.0 * self.r_max + self.micro.cohesion_range + self.skin
+        cells = int(np.max(np.ceil((self.domain_max - self.domain_min) / cell))) + 3
+        extent = 1 << (3 * max(1, math.ceil(math.log2(cells))))
+        while table < min(extent, MORTON_TABLE_PER_PARTICLE * cap, MORTON_TABLE_MAX):
+            table *= 2
         self._n = n
         self._mask = table - 1
         nd = ti.ndarray
@@ -362,10 +387,19 @@ class DemSoil:
         self._surf_h, self._surf_h2 = (nd(dem.vec6f, (cap, dem.SURF_SLOTS)) for _ in range(2))
         self._x_ref = nd(dem.vec4, cap)
         self._own = nd(dem.vec3, (cap, 2))
-        self._partial = nd(ti.f64, (max(min(cap, dem.STEP_BLOCKS), cap // dem.BLOCK) + 1, dem.PART_WIDTH))
+        blocks = max(min(cap, dem.STEP_BLOCKS), cap // dem.BLOCK) + 1
+        self._partial = nd(ti.f64, (blocks, dem.PART_WIDTH))
+        self._blk_hot, self._blk_active = nd(ti.i32, blocks), nd(ti.i32, blocks)
+        self._blk_box = nd(dem.vec3, (blocks, 2))
+        self._blk_list = nd(ti.i32, blocks + 1)
+        self._blk_hot.fill(1)
         self._rev_off = nd(ti.i32, cap + 1)
         self._bucket = nd(ti.i32, cap)
         self._order = nd(ti.i32, cap)
+        self._order_inv = nd(ti.i32, cap)
+        self._kept = nd(ti.i32, cap)
+        self._moved = nd(ti.i32, table + 2)
+        self._lists_built = False
         self._counts = nd(ti.i32, table + 1)
         self._starts = nd(ti.i32, table + 2)
         self._nbr_off, self._nbr_off2 = (nd(ti.i32, cap + 1) for _ in range(2))
@@ -379,6 +413,7 @@ class DemSoil:
         self._nbr_j, self._nbr_j2 = (ti.ndarray(ti.i32, entries) for _ in range(2))
         self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, entries) for _ in range(2))
         self._rev_pos = ti.ndarray(ti.i32, entries)
+        self._rev_holder = ti.ndarray(ti.i32, entries)
         self._pair_out = ti.ndarray(dem.vec3f, (entries, 2))
 
     def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
@@ -439,15 +474,24 @@ class DemSoil:
         self.set_state(st)
         self._rebuild()  # the new particles' pairs
 
-    def _rebuild(self) -> None:
-        """Sort particles by cell, drop inactive ones to the end, rebuild the neighbour lists (history kept)."""
+    def _rebuild(self, keep_still: bool = False) -> None:
+        """Sort particles by cell, drop inactive ones to the end, rebuild the neighbour lists (history kept).
+
+        keep_still: the lists were built by the last rebuild and only the motion since has made this one needed
+        (not new or replaced particles): particles around which nothing moved keep their lists (the same lists,
+        without the search)."""
         n = self._n
         if n == 0:
             self.n_act = 0
             return
         self.rebuilds += 1
+        keep = bool(keep_still and self.keep_still_lists and self._lists_built)
         dem.bin_particles(n, self._kin, self._flags, self._cell, self._bucket, self._counts, self._prm, self._mask)
+        n_listed = self.n_act
         n_act = dem.sort_by_bucket(n, self._bucket, self._counts, self._starts, self._order, self._mask)
+        if keep:
+            dem.mark_moved_cells(n, n_listed, self._kin, self._flags, self._x_ref, self._bucket, self._order,
+                                 self._order_inv, self._moved, self._prm, self._mask)
         dem.gather_particles(n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
                              self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
                              self._cell2)
@@ -458,23 +502,34 @@ class DemSoil:
         self._surf_h, self._surf_h2 = self._surf_h2, self._surf_h
         self._cell, self._cell2 = self._cell2, self._cell
         entries = dem.count_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._nbr_off2,
-                                      self._prm, self._mask)
+                                      self._prm, self._mask, int(keep), self._moved, self._order, self._nbr_off,
+                                      self._kept)
         if entries > self._nbr_j2.shape[0]:
             # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact)
             grown = int(entries * 1.25) + 64
             self._nbr_j2 = ti.ndarray(ti.i32, grown)
             self._nbr_h2 = ti.ndarray(dem.vec6f, grown)
             self._rev_pos = ti.ndarray(ti.i32, grown)
+            self._rev_holder = ti.ndarray(ti.i32, grown)
             self._pair_out = ti.ndarray(dem.vec3f, (grown, 2))
         dem.fill_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
                            self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
-                           self._prm, self._mask)
+                           self._prm, self._mask, self._kept, self._order_inv)
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
         dem.build_reverse(n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_pos)
         self.n_act = int(n_act)
         self._entries = int(entries)
+        self._lists_built = True
+        self._blocks_changed()
+
+    def _blocks_changed(self) -> None:
+        """After the particle order or the lists changed: every block takes part in the next substep, which
+        finds the sleeping ones again (mark_blocks)."""
+        if self.n_act:
+            dem.fill_rev_holder(self.n_act, self._nbr_off, self._rev_pos, self._rev_holder)
+        self._blk_hot.fill(1)
 
     # ------------------------------------------------------------------------------------------- beds
     def _cache_key(self, settle_time: float) -> str:
@@ -723,6 +778,9 @@ class DemSoil:
         row[dem.T_ORG:dem.T_ORG + 3] = grid.origin
         row[dem.T_H] = grid.spacing
         row[dem.T_ROT:dem.T_ROT + 9] = np.eye(3).ravel()
+        half = 0.5 * (np.asarray(grid.shape, dtype=np.float64) - 1.0) * grid.spacing
+        row[dem.T_BS:dem.T_BS + 3] = np.asarray(grid.origin, dtype=np.float64) + half
+        row[dem.T_BS + 3] = float(np.linalg.norm(half)) * (1.0 + 1e-9) + 1e-9
         self._tools_dirty = True
         return i
 
@@ -767,16 +825,19 @@ class DemSoil:
                     rev_off=self._rev_off, rev_pos=self._rev_pos, surf_id=self._surf_id, surf_h=self._surf_h,
                     tools=self._tools, tool_acc=self._tool_acc, sdf=self._sdf, prm=self._prm, stat=self._stat,
                     partial=self._partial, n_act=self.n_act, dt=h, bulk_damping=damping,
-                    block=dem.reduction_block(self.n_act))
+                    block=dem.reduction_block(self.n_act), blk_hot=self._blk_hot, blk_active=self._blk_active,
+                    blk_box=self._blk_box, rev_holder=self._rev_holder, blk_list=self._blk_list,
+                    skip=int(self.skip_sleeping_blocks))
         graph = _substep_graph()
         if graph is not None:
             graph.run(args)
             disp2 = self._stat[dem.S_DISP2]
         else:
+            dem.mark_blocks(*(args[a] for a in _MARK_ARGS))
             dem.pair_forces(*(args[a] for a in _PAIR_ARGS))
             disp2 = dem.step(*(args[a] for a in _STEP_ARGS))
         if disp2 > 0.25 * self.skin * self.skin:
-            self._rebuild()
+            self._rebuild(keep_still=True)
 
     def advance(self, duration: float) -> np.ndarray:
         """Advance by `duration` in n = ceil(duration / dt) equal substeps, tools moving kinematically.

@@ -90,6 +90,9 @@ PARAMS: dict[str, dict[str, Param]] = {
     "repose": {"preset": PRESET},
     "vertical_cut": {"height": Param(None, "m (default: 0.6 x the Culmann height of the preset)"),
                      "preset": Param("dirt", "", None, "a soil preset")},
+    # the vertical cut's critical height, bisected: a face that stands CUT_DURATION against one that falls
+    "critical_height": {"preset": Param("dirt", "", None, "a cohesive soil preset"),
+                        "steps": Param(4.0, "", lambda v: v == int(v) and 1 <= v <= 8, "an integer 1-8")},
 }
 CASES = tuple(PARAMS)
 
@@ -105,6 +108,7 @@ ACROSS = {
     # the heap at 8 across read 27.2-31.4 deg over seeds 0-4 (its flank fits span a few grains); at 12, 30.7-32.0
     "repose": dict(coarse=12, default=16, fine=24),         # across the poured column
     "vertical_cut": dict(coarse=8, default=16, fine=24),    # across the Culmann height
+    "critical_height": dict(coarse=8, default=16, fine=24),  # its vertical cuts'
 }
 ACROSS_RANGE = (3, 64)   # a numeric --resolution: 3 is the coarse 3-D blade; 64 across d 0.3 m is ~0.33 M grains in
                          # plane strain, ~17 M for the 3-D blade
@@ -164,6 +168,9 @@ def parse_params(case: str, items: list[str] | dict | None) -> dict:
             out["width"] = BLADE_WIDTH_3D
     if case == "vertical_cut" and out["height"] is None:
         out["height"] = 0.6 * culmann_height(out["preset"])
+    if case == "critical_height" and not _bulk(out["preset"]).cohesion > 0:
+        raise UserError(f"--param preset: {out['preset']} has no cohesion, so no vertical cut stands; choose a "
+                        f"cohesive preset (dirt, kanto_loam)")
     return out
 
 
@@ -529,6 +536,70 @@ def scene_file(case: str) -> Path:
     return scenes_dir() / "validation" / f"{case}.yaml"
 
 
+CRITICAL_BRACKET = (0.5, 1.5)   # x Culmann: the first heights tried (widened by 1.5 x while both stand or fall)
+CRITICAL_WIDEN = 3              # at most this many widenings on either side
+
+
+class _NotRun(Exception):
+    pass
+
+
+def critical_height(p: dict, resolution: str, out: Path, cut) -> dict:
+    """Bisect the height of a vertical cut between one that stands CUT_DURATION and one that falls.
+
+    cut(height, folder) -> the vertical_cut metrics of that height (run, or kept from an earlier run). Every cut has
+    the same grains (their size is set by the Culmann height), so only the height changes. Returns the metric."""
+    hc = culmann_height(p["preset"])
+    tried: list[tuple[float, bool]] = []
+
+    def stands(k: float) -> bool:
+        m = cut(k * hc, out / f"h{k:.4f}")
+        tried.append((k, bool(m["measured"])))
+        return bool(m["measured"])
+
+    lo, hi = CRITICAL_BRACKET
+    for _ in range(CRITICAL_WIDEN):
+        if stands(lo):
+            break
+        lo, hi = lo / 1.5, lo
+    else:
+        if not stands(lo):
+            return dict(measured=0.0, low=0.0, high=lo * hc, tried=tried)
+    for _ in range(CRITICAL_WIDEN):
+        if not stands(hi):
+            break
+        lo, hi = hi, hi * 1.5
+    else:
+        if stands(hi):
+            return dict(measured=float("inf"), low=hi * hc, high=float("inf"), tried=tried)
+    for _ in range(int(p["steps"])):
+        mid = 0.5 * (lo + hi)
+        if stands(mid):
+            lo = mid
+        else:
+            hi = mid
+    return dict(measured=0.5 * (lo + hi) * hc, low=lo * hc, high=hi * hc, tried=tried)
+
+
+def _critical_metrics(p: dict, resolution: str, out: Path, cut, particles_of) -> dict:
+    found = critical_height(p, resolution, out, cut)
+    hc = culmann_height(p["preset"])
+    measured = found["measured"]
+    rel = (measured - hc) / hc
+    geo_n = grains_across("critical_height", resolution)
+    metrics = {"case": "critical_height", "metric": "critical_height", "unit": "m", "measured": measured,
+               "reference": hc, "relative_error": rel, "passed": bool(abs(rel) <= 0.25),
+               "gate": "within 25% of Culmann's 4c/(rho g) tan(45 + phi/2): bisected between a cut that stands "
+                       f"{CUT_DURATION:g} s and one that falls",
+               "parameters": _si_params(p), "resolution": resolution, "n_across": geo_n,
+               "bracket_m": [found["low"], found["high"]],
+               "cuts": [{"height_over_culmann": k, "stood": stood} for k, stood in found["tried"]],
+               **particles_of()}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float) + "\n")
+    return metrics
+
+
 def run_case(case: str, params=None, resolution: str = "default", out_dir: str | Path | None = None,
              arch: str | None = None, quiet: bool = True) -> dict:
     """Run one validation case; writes OUT/run/ (the usual run folder) and OUT/metrics.json; returns the metrics."""
@@ -537,6 +608,8 @@ def run_case(case: str, params=None, resolution: str = "default", out_dir: str |
 
     p = parse_params(case, params)
     out = Path(out_dir) if out_dir is not None else Path("runs") / f"validate-{case}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if case == "critical_height":
+        return _run_critical_height(p, resolution, out, arch, quiet)
     sets, geo = build_overrides(case, p, resolution, work_dir=out)
     scene = load_scene(scene_file(case), sets)
     t0 = time.perf_counter()
@@ -569,6 +642,28 @@ def _score(case: str, p: dict, geo: dict, sets: list[str], resolution: str, out:
     return metrics
 
 
+def _run_critical_height(p: dict, resolution: str, out: Path, arch, quiet: bool, reuse_only: bool = False):
+    runs: list[dict] = []
+
+    def cut(height: float, folder: Path) -> dict:
+        params = {"preset": p["preset"], "height": repr(height)}
+        m = finished_metrics("vertical_cut", params, resolution, folder)
+        if m is None:
+            if reuse_only:
+                raise _NotRun(folder)
+            m = run_case("vertical_cut", params, resolution, folder, arch=arch, quiet=quiet)
+            if not quiet:
+                print(f"critical_height {p['preset']}: {height:.3f} m {'stood' if m['measured'] else 'fell'}")
+        runs.append(m)
+        return m
+
+    def particles_of() -> dict:
+        return {"particles": max(m["particles"] for m in runs), "wall_time_s": sum(m["wall_time_s"] for m in runs),
+                "particle_radius_m": runs[0]["particle_radius_m"]}
+
+    return _critical_metrics(p, resolution, out, cut, particles_of)
+
+
 def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) -> dict | None:
     """The metrics of a run already in out_dir, if it is the run run_case(case, params, resolution, out_dir) would
     make now (same overrides: parameters, resolution, geometry; the same micro-parameters from the bulk-to-micro
@@ -579,6 +674,11 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
     from ..model import soil_parameters
 
     out = Path(out_dir)
+    if case == "critical_height":
+        try:
+            return _run_critical_height(parse_params(case, params), resolution, out, None, True, reuse_only=True)
+        except _NotRun:
+            return None
     run_dir = out / "run"
     try:
         metrics = json.loads((out / "metrics.json").read_text())
