@@ -142,20 +142,26 @@ def _cmd_validate_physics(args) -> int:
 
     cases.grains_across(cases.CASES[0], args.resolution)  # a bad --resolution stops here, before any run
     for flag, given in (("--resume", args.resume), ("--report-only", args.report_only)):
-        if given and args.case != "all":
-            raise UserError(f"{flag}: only with `all` (a single case always runs)")
-    if args.case == "all":
+        if given and args.case not in ("all", "resolution"):
+            raise UserError(f"{flag}: only with `all` or `resolution` (a single case always runs)")
+    if args.case in ("all", "resolution"):
         if args.param:
-            raise UserError("--param: not allowed with `all` (it runs the fixed gate set)")
-        from .validation import report
+            raise UserError(f"--param: not allowed with `{args.case}` (it runs a fixed set of cases)")
+        from .validation import report, resolution
 
-        path, failed = report.run_all(resolution=args.resolution, out_dir=args.out, report_path=args.report,
-                                      arch=args.arch, quiet=args.quiet, resume=args.resume,
-                                      report_only=args.report_only, with_failures=True)
+        if args.case == "all":
+            path, failed = report.run_all(resolution=args.resolution, out_dir=args.out,
+                                          report_path=args.report or "docs/validation.md", arch=args.arch,
+                                          quiet=args.quiet, resume=args.resume, report_only=args.report_only,
+                                          with_failures=True)
+        else:
+            path, failed = resolution.run_study(out_dir=args.out, report_path=args.report or "docs/resolution.md",
+                                                arch=args.arch, quiet=args.quiet, resume=args.resume,
+                                                report_only=args.report_only)
         if not args.quiet:
             print(path)
         if failed:
-            print(f"FAIL: {len(failed)} gate(s) failed: {', '.join(failed)} (see {path})", file=sys.stderr)
+            print(f"FAIL: {len(failed)} gate(s) failed: {'; '.join(failed)} (see {path})", file=sys.stderr)
             return 1
         return 0
     metrics = cases.run_case(args.case, args.param, resolution=args.resolution, out_dir=args.out, arch=args.arch,
@@ -243,24 +249,27 @@ def build_parser() -> argparse.ArgumentParser:
     runs.set_defaults(handler=_cmd_runs)
     physics = commands.add_parser(
         "validate-physics", help="run a physics validation case against its analytic reference",
-        description="Run a validation case (blade_cut, passive_wall, column_collapse, repose, vertical_cut) and "
-                    "write DIR/metrics.json next to the run folder DIR/run/; `all` runs the gate set and writes "
-                    "the report (docs/validation.md and its plots).")
+        description="Run a validation case (blade_cut, passive_wall, column_collapse, repose, vertical_cut, "
+                    "critical_height) and write DIR/metrics.json next to the run folder DIR/run/; `all` runs the "
+                    "gate set and writes the report (docs/validation.md and its plots); `resolution` runs the study "
+                    "at operating resolution (docs/resolution.md: blade convergence, coarse gates, critical "
+                    "heights).")
     physics.add_argument("case", metavar="CASE", help="blade_cut | passive_wall | column_collapse | repose | "
-                                                      "vertical_cut | all")
+                                                      "vertical_cut | critical_height | all | resolution")
     physics.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                          help="case parameter (repeatable), e.g. --param depth=0.2 --param rake_deg=60")
     physics.add_argument("--resolution", default="default", metavar="coarse|default|fine|N",
                          help="particle size: a named resolution, or N particle diameters across the case's key "
                               "length (3-64; e.g. 24 for a blade convergence run on a GPU)")
     physics.add_argument("--out", metavar="DIR", help="output folder (default: runs/validate-<case>-<time>)")
-    physics.add_argument("--report", metavar="FILE", default="docs/validation.md",
-                         help="report written by `all` (plots go beside it in <stem>/)")
+    physics.add_argument("--report", metavar="FILE",
+                         help="report written by `all` (default docs/validation.md) or `resolution` (default "
+                              "docs/resolution.md); plots go beside it in <stem>/")
     physics.add_argument("--resume", action="store_true",
-                         help="with `all`: keep the runs already finished in --out with the same parameters, "
+                         help="with `all` or `resolution`: keep the runs already finished in --out with the same parameters, "
                               "resolution and solver version; run only the others")
     physics.add_argument("--report-only", action="store_true",
-                         help="with `all`: run nothing, write the report from the runs already finished in --out "
+                         help="with `all` or `resolution`: run nothing, write the report from the runs already finished in --out "
                               "(the other gates listed as not run)")
     physics.add_argument("--arch", choices=("cpu", "cuda", "auto"), help="Taichi backend")
     physics.add_argument("--quiet", action="store_true", help="no progress bars")

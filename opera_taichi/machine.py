@@ -327,10 +327,12 @@ class BulletMachine:
             state = pb.getLinkState(self.body, index, computeLinkVelocity=1, computeForwardKinematics=1,
                                     physicsClientId=c)
             com, origin, orn, v_com, omega = state[0], state[4], state[5], state[6], state[7]
-        com, origin, v_com, omega = (np.asarray(v, float) for v in (com, origin, v_com, omega))
-        # Bullet reports the velocity of the centre of mass; move it to the link frame origin
-        v_origin = v_com + np.cross(omega, origin - com)
-        return origin, np.asarray(orn, float), v_origin, omega
+        # Bullet reports the velocity of the centre of mass; move it to the link frame origin (omega x r written
+        # out: np.cross costs more than the rest of this call)
+        (wx, wy, wz), (rx, ry, rz) = omega, (origin[0] - com[0], origin[1] - com[1], origin[2] - com[2])
+        v_origin = np.array((v_com[0] + (wy * rz - wz * ry), v_com[1] + (wz * rx - wx * rz),
+                             v_com[2] + (wx * ry - wy * rx)))
+        return np.asarray(origin, float), np.asarray(orn, float), v_origin, np.asarray(omega, float)
 
     def tip_position(self) -> np.ndarray:
         """Cutting edge (tip link origin), world frame."""

@@ -12,7 +12,7 @@ from opera_taichi.validation import cases, report
 from opera_taichi.validation import references as ref
 
 
-@pytest.mark.parametrize("case", cases.CASES)
+@pytest.mark.parametrize("case", cases.SCENE_CASES)
 def test_every_case_builds_a_valid_scene_at_every_resolution(case):
     p = cases.parse_params(case, [])
     radii = []
@@ -34,7 +34,7 @@ def _numbers(value):
 
 def test_shipped_scenes_are_the_default_case():
     # the YAML in scenes/validation is what `validate-physics CASE` runs at its defaults
-    for case in cases.CASES:
+    for case in cases.SCENE_CASES:
         sets, _ = cases.build_overrides(case, cases.parse_params(case, []), "default")
         plain = load_scene(cases.scene_file(case)).model_dump(mode="json")
         built = load_scene(cases.scene_file(case), sets).model_dump(mode="json")
@@ -114,7 +114,7 @@ def test_vertical_cut_default_height_is_below_culmann():
     assert p["height"] == pytest.approx(0.6 * hc)
 
 
-@pytest.mark.parametrize("case", cases.CASES)
+@pytest.mark.parametrize("case", cases.SCENE_CASES)
 def test_a_numeric_resolution_is_that_many_diameters_across_the_key_length(case):
     p = cases.parse_params(case, [])
     for name in cases.RESOLUTIONS:  # the named resolutions are numbers from ACROSS
@@ -309,7 +309,7 @@ def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, mo
 @pytest.mark.parametrize("flag", ["--resume", "--report-only"])
 def test_resume_and_report_only_are_only_for_the_gate_set(flag, capsys):
     assert main(["validate-physics", "repose", flag]) == 2
-    assert f"{flag}: only with `all`" in capsys.readouterr().err
+    assert f"{flag}: only with `all` or `resolution`" in capsys.readouterr().err
 
 
 def test_a_kept_run_is_measured_again_with_the_current_code(tmp_path):
@@ -354,3 +354,55 @@ def test_peak_of_travel_average_is_the_largest_window_mean():
     assert peak == pytest.approx(last, rel=1e-12)
     assert peak < force.max() * 0.95  # the top of the noise is not the peak
     assert cases.peak_of_travel_average(x, force, 1.0) == pytest.approx(force.mean(), rel=1e-12)  # window > record
+
+
+def test_critical_height_bisects_between_a_cut_that_stands_and_one_that_falls(tmp_path):
+    """The bisection against cuts that stand below a known height: it brackets that height, each bisection halves
+    the bracket, and a height outside the first bracket is found by widening it."""
+    hc = cases.culmann_height("dirt")
+    for true_ratio in (0.83, 0.3, 2.9):
+        tried = []
+
+        def cut(height, folder):
+            tried.append(height / hc)
+            return {"measured": height < true_ratio * hc}
+
+        found = cases.critical_height({"preset": "dirt", "steps": 4.0}, "coarse", tmp_path, cut)
+        assert found["low"] <= true_ratio * hc < found["high"]
+        assert found["measured"] == pytest.approx(0.5 * (found["low"] + found["high"]))
+        width = (found["high"] - found["low"]) / hc
+        first = 1.0 if true_ratio == 0.83 else None  # the first bracket is 0.5-1.5 x Culmann
+        if first is not None:
+            assert width == pytest.approx(first / 2 ** 4)
+        assert len(set(tried)) == len(tried)  # no height is cut twice
+
+
+def test_critical_height_needs_a_cohesive_soil(capsys):
+    assert main(["validate-physics", "critical_height", "--param", "preset=sand", "--resolution", "coarse"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sand has no cohesion" in err[0]
+    with pytest.raises(UserError, match="steps"):
+        cases.parse_params("critical_height", ["steps=0"])
+
+
+def test_resolution_study_gates_follow_the_issue(tmp_path):
+    """The study's gates on synthetic runs: 4 and 8 grains across at 25% and 15%, d^2 at 10%, the wall at 20%, the
+    critical heights at 25%; a gate whose runs are missing is 'not run', not a pass."""
+    from opera_taichi.validation import resolution
+
+    def run(measured, reference):
+        return {"measured": measured, "reference": reference, "particles": 1000, "wall_time_s": 1.0,
+                "parameters": {"preset": "dirt"}, "resolution": "coarse", "n_across": 8, "bracket_m": [0.7, 0.74]}
+
+    results = {"blade_a90_d0.3_n4": run(1.2 * 2769, 2769), "blade_a90_d0.3_n8": run(1.2 * 2769, 2769),
+               "blade_a90_d0.2_n4": run(1.2 * 2769 / 2.25 / 1.05, 1231),
+               "critical_height_dirt_coarse": run(0.72, 1.0)}
+    gates = {g["label"]: g for g in resolution.study_gates(results)}
+    assert gates["blade a90 d0.3, 4 grains across d: draft / FEE"]["passed"] is True
+    assert gates["blade a90 d0.3, 8 grains across d: draft / FEE"]["passed"] is False
+    assert gates["blade draft ~ d^2 (d 0.3 vs 0.2), 4 grains across d"]["passed"] is True
+    assert gates["critical height, dirt, coarse: / Culmann"]["passed"] is False
+    assert gates["passive wall H0.3, 4 grains across H: thrust / Rankine"]["passed"] is None
+    path = resolution.write_study(results, list(gates.values()), tmp_path / "r.md", "cmd")
+    text = path.read_text()
+    assert "| 4 |" in text and "not run" in text and "FAIL" in text

@@ -95,6 +95,7 @@ PARAMS: dict[str, dict[str, Param]] = {
                         "steps": Param(4.0, "", lambda v: v == int(v) and 1 <= v <= 8, "an integer 1-8")},
 }
 CASES = tuple(PARAMS)
+SCENE_CASES = tuple(c for c in CASES if c != "critical_height")  # one run of one scene each (critical_height: many)
 
 # particle diameters across the length that sets each case's resolution
 ACROSS = {
@@ -131,7 +132,7 @@ CUT_MOVED_LIMIT = 0.05   # a face has failed when more than 5% of the block's ma
 def parse_params(case: str, items: list[str] | dict | None) -> dict:
     """`NAME=VALUE` strings (or a mapping) -> the case's full parameter set, checked (UserError, one line)."""
     if case not in PARAMS:
-        raise UserError(f"validate-physics: unknown case {case!r}; allowed: {', '.join(CASES)}, all")
+        raise UserError(f"validate-physics: unknown case {case!r}; allowed: {', '.join(CASES)}, all, resolution")
     spec = PARAMS[case]
     given = dict(items) if isinstance(items, dict) else {}
     if not isinstance(items, dict):
@@ -551,11 +552,13 @@ def critical_height(p: dict, resolution: str, out: Path, cut) -> dict:
     the same grains (their size is set by the Culmann height), so only the height changes. Returns the metric."""
     hc = culmann_height(p["preset"])
     tried: list[tuple[float, bool]] = []
+    known: dict[float, bool] = {}
 
     def stands(k: float) -> bool:
-        m = cut(k * hc, out / f"h{k:.4f}")
-        tried.append((k, bool(m["measured"])))
-        return bool(m["measured"])
+        if k not in known:  # (a widened bracket's far end is already known)
+            known[k] = bool(cut(k * hc, out / f"h{k:.4f}")["measured"])
+            tried.append((k, known[k]))
+        return known[k]
 
     lo, hi = CRITICAL_BRACKET
     for _ in range(CRITICAL_WIDEN):
