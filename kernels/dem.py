@@ -1015,10 +1015,8 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
             for s in range(old_off[o_i], old_off[o_i + 1]):
                 j = order_inv[old_j[s]]
                 nbr_j[e] = j
-                dx = x_i - kin[j, 0]
-                r_sum = r_i + prop[j][0]
                 h = vec6f(0.0)
-                if dx.dot(dx) < r_sum * r_sum:
+                if _touching(x_i, r_i, kin, prop, j):
                     h = old_h[s]
                 nbr_h[e] = h
                 e += 1
@@ -1026,6 +1024,14 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
             _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h, nbr_j,
                         nbr_h, prm, mask)
         x_ref[i] = vec4(x_i[0], x_i[1], x_i[2], _clearance(x_i, _pit_of(x_i, prm), prm))
+
+
+@ti.func
+def _touching(x_i, r_i, kin: ti.template(), prop: ti.template(), j):
+    """Whether i and j overlap: one function for a searched list and a kept one, so both compile the same test."""
+    dx = x_i - kin[j, 0]
+    r_sum = r_i + prop[j][0]
+    return dx.dot(dx) < r_sum * r_sum
 
 
 @ti.func
@@ -1050,7 +1056,7 @@ def _fill_found(i, o_i, x_i, r_i, extra, e0, kin: ti.template(), prop: ti.templa
                 if d2 < reach * reach:
                     nbr_j[e] = j
                     h = vec6f(0.0)
-                    if d2 < r_sum * r_sum:  # only touching pairs have springs that matter
+                    if _touching(x_i, r_i, kin, prop, j):  # only touching pairs have springs that matter
                         h = _old_history(o_i, order[j], old_off, old_j, old_h)
                     nbr_h[e] = h
                     e += 1

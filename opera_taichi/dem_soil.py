@@ -197,7 +197,8 @@ class DemSoil:
         self._tools_dirty = True
         self._last_impulse = np.zeros((0, 6))
         self._prm = ti.ndarray(ti.f64, dem.N_PRM)
-        self._prm.from_numpy(self._parameters())
+        self._blk_hot = None
+        self._set_prm(self._parameters())
         self._stat = ti.ndarray(ti.f64, dem.N_STAT)
         self._stat.fill(0.0)
         self._tools = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))
@@ -230,7 +231,7 @@ class DemSoil:
                    sleep=getattr(soil, "sleep", False), surface=getattr(soil, "surface", None))
         if not build_beds:  # the kernels still need the pits as static geometry
             self.beds = _check_beds(list(soil.beds), self.domain_min, self.domain_max, self.r_max)
-            self._prm.from_numpy(self._parameters())
+            self._set_prm(self._parameters())
         shift = np.asarray(soil.bed_shift, float)
         if build_beds and np.any(shift != 0.0):  # a settled block released above the ground (the pits stay, empty)
             parts = self.particles()
@@ -524,6 +525,13 @@ class DemSoil:
         self._lists_built = True
         self._blocks_changed()
 
+    def _set_prm(self, prm: np.ndarray) -> None:
+        """Upload the parameters. Who is asleep depends on them (P_SLEEP_STEPS): every block takes part in the next
+        substep, so a particle the new values wake is integrated at once."""
+        self._prm.from_numpy(prm)
+        if self._blk_hot is not None:
+            self._blk_hot.fill(1)
+
     def _blocks_changed(self) -> None:
         """After the particle order or the lists changed: every block takes part in the next substep, which
         finds the sleeping ones again (mark_blocks)."""
@@ -613,15 +621,15 @@ class DemSoil:
             loose[[dem.P_MU_WALL, dem.P_COH_F]] = 0.0
         loose[dem.P_WALL_TOP] = 1e30
         loose[dem.P_SLEEP_STEPS] = 0.0  # the bed settles awake: a cached bed does not depend on soil.sleep
-        self._prm.from_numpy(loose)
+        self._set_prm(loose)
         self._run_until_quiet(max(0.6 * settle_time, 2.0 * t_fall), t_fall, quiet, SETTLE_DAMPING)  # it must land
         # friction on (the slow creep of a frictionless packing stops), then level the beds and let them rest
         loose[[dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]] = self._parameters()[
             [dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]]
-        self._prm.from_numpy(loose)
+        self._set_prm(loose)
         self._run_until_quiet(max(0.2 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
         self._match_bulk_density()  # before the rest of the settling, so the bed rests under its final weight
-        self._prm.from_numpy(self._settle_parameters())
+        self._set_prm(self._settle_parameters())
         self._trim_to_beds()
         # a loose (friction-poured) bed keeps creeping for a while after levelling: rest it until quiet
         self._run_until_quiet(max(0.5 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
@@ -632,7 +640,7 @@ class DemSoil:
         self._stat.fill(0.0)
         self.time = 0.0
         self._rebuild()  # sorted for the final positions: a reload (which rebuilds) gets the same order
-        self._prm.from_numpy(self._parameters())
+        self._set_prm(self._parameters())
 
     def _settle_parameters(self) -> np.ndarray:
         prm = self._parameters()
@@ -793,7 +801,7 @@ class DemSoil:
                             f"domain top {self.domain_max[2]:g}, got {z!r}")
         prm = self._prm.to_numpy()
         prm[dem.P_DMAX + 2] = z
-        self._prm.from_numpy(prm)
+        self._set_prm(prm)
 
     @property
     def tool_names(self) -> list[str]:

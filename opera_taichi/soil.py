@@ -16,6 +16,14 @@ COORDINATION = 6.0        # mean contacts per particle in Rumpf's strength formu
 STIFFNESS_SCALE = 1.0     # k_n = STIFFNESS_SCALE * E * 2R (a regular packing's modulus is ~ k_n / 2R)
 OVERLAP_RULE = 100.0      # k_n >= 100 rho g H d keeps the mean overlap under the bed's weight below ~1% of R
 COHESION_RANGE = 0.1      # cohesive band D = 0.1 R beyond contact (also the soil-tool adhesion band)
+# The bond force from Rumpf's formula with c = sigma_t tan(phi), times COHESION_SCALE tan(phi)^COHESION_EXPONENT:
+# with Rumpf's alone the critical height of a vertical cut (`validate-physics critical_height`, bisected between a
+# face that stands 5 s and one that falls) read 0.72 / 0.59 x Culmann's for dirt (phi 40 deg, c 2.1 kPa) at the
+# coarse / default resolution and 1.16 / 1.09 x for kanto_loam (phi 20 deg, c 10 kPa): the bonds' strength follows
+# 1 / tan(phi) more weakly than Rumpf's. The factor that puts both soils at Culmann's on the mean of the two
+# resolutions (assuming the height goes as the bond force) is 1.716 tan(phi)^0.65 (docs/resolution.md).
+COHESION_SCALE = 1.716
+COHESION_EXPONENT = 0.65
 # Tool area per soil-tool contact, in R^2: the grains touching a flat face cover about 55% of it in projection (a
 # random monolayer), one contact per pi R^2 / 0.55. Converts the adhesion c_a (Pa) to a force per contact.
 TOOL_CONTACT_AREA = math.pi / 0.55
@@ -279,8 +287,9 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     - Solid density rho / SOLID_FRACTION is a first guess: DemSoil scales the masses of a settled bed so that it
       has the bulk density rho at the packing it actually reached.
     - Cohesion: Rumpf sigma_t = phi_s Z F / (pi d^2) with phi_s = 0.6, Z = 6, and Mohr-Coulomb
-      c = sigma_t tan(phi), so F = c pi d^2 / (phi_s Z tan(phi)); attraction F at contact, falling linearly
-      to 0 at a gap D = 0.1 R.
+      c = sigma_t tan(phi), so F = c pi d^2 / (phi_s Z tan(phi)), calibrated on the vertical cut's critical
+      height by COHESION_SCALE tan(phi)^COHESION_EXPONENT; attraction F at contact, falling linearly to 0 at a
+      gap D = 0.1 R.
     - Tool friction mu_tool = tan(delta), delta = 2/3 phi unless given; ground friction = mu (rough floor).
     - Adhesion c_a (soil-tool, Pa): each tool contact gets an attraction F_a (falling linearly to 0 at a gap of
       0.1 R, as cohesion) and F_a of tangential capacity on top of mu_tool times its normal force. The attraction
@@ -305,7 +314,8 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     cohesion_force = 0.0
     cohesion_range = 0.0
     if bulk.cohesion > 0.0:
-        cohesion_force = bulk.cohesion * math.pi * diameter ** 2 / (SOLID_FRACTION * COORDINATION * mu)
+        cohesion_force = COHESION_SCALE * mu ** COHESION_EXPONENT * bulk.cohesion * math.pi * diameter ** 2 / \
+            (SOLID_FRACTION * COORDINATION * mu)
         cohesion_range = COHESION_RANGE * radius
     mu_tool = math.tan(delta)
     adhesion_force = bulk.adhesion * TOOL_CONTACT_AREA * radius ** 2 / (1.0 + mu_tool)

@@ -128,11 +128,14 @@ def _compressed_dig(skip: bool, steps: int):
 
     soil._rebuild = counting_rebuild
     controller = ScriptController(sim.model)
+    impulses = []
     for k in range(steps):
         sim.step(controller.control(sim, (sim.step_count + 1) * sim.model.dt))
+        impulses.append(soil.last_tool_impulse)
         if k % 100 == 0:
             n_blocks = -(-soil.n_act // dem.reduction_block(soil.n_act))
             active.append(float(soil._blk_active.to_numpy()[:n_blocks].mean()))
+    soil.impulses = np.array(impulses)
     return soil, float(np.mean(active)), kept
 
 
@@ -146,5 +149,7 @@ def test_skipping_sleeping_blocks_and_keeping_still_lists_change_no_bit():
     assert active < 0.8                 # blocks were skipped ...
     assert kept and max(kept) > 0       # ... and lists kept: the shortcuts did run
     a, b = fast.get_state(), full.get_state()
-    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "x_ref"):
+    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "x_ref", "stat"):
         assert np.array_equal(a[name], b[name]), name
+    assert np.abs(fast.impulses).max() > 0                 # the bucket dug ...
+    assert np.array_equal(fast.impulses, full.impulses)    # ... with the same force at every step

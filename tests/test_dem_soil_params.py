@@ -72,9 +72,13 @@ def test_micro_mapping_follows_the_documented_rules():
     assert micro.k_t == pytest.approx(2.0 / 7.0 * micro.k_n)
     assert micro.mu == pytest.approx(math.tan(bulk.friction_angle))
     assert micro.mu_tool == pytest.approx(math.tan(2.0 / 3.0 * bulk.friction_angle))
-    # Rumpf + Mohr-Coulomb inverted: c = sigma_t tan(phi), sigma_t = phi_s Z F / (pi d^2)
+    # Rumpf + Mohr-Coulomb inverted: c = sigma_t tan(phi), sigma_t = phi_s Z F / (pi d^2), with the calibration
+    # 1.716 tan(phi)^0.65 from the vertical cut's critical height
+    from opera_taichi.soil import COHESION_EXPONENT, COHESION_SCALE
+
     sigma_t = SOLID_FRACTION * 6.0 * micro.cohesion_force / (math.pi * d ** 2)
-    assert sigma_t * math.tan(bulk.friction_angle) == pytest.approx(bulk.cohesion)
+    mu = math.tan(bulk.friction_angle)
+    assert sigma_t * mu == pytest.approx(COHESION_SCALE * mu ** COHESION_EXPONENT * bulk.cohesion)
     assert 0 < micro.cohesion_range < bulk.radius
     # no adhesion unless given; c_a = F_a (1 + tan delta) / A_c with A_c = pi R^2 / 0.55 (a monolayer's contacts)
     assert micro.adhesion_force == 0.0 and micro.adhesion_range == 0.0

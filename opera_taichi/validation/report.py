@@ -194,8 +194,14 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    which compare with Rankine and the earthmoving equation at the same phi. The blade has a sharpened edge and the
    spoil rising above the surface is cleared (`soil.clear_above`), so the oracle is the FEE without surcharge.
 4. **Cohesion** `cohesion` (Pa; Rumpf's bond force, see soil.py): check with the vertical cut at 0.6 and 2 x the
-   Culmann height, `validate-physics vertical_cut --param preset=NAME --param height=H`; raise or lower the
-   cohesion until the face stands below and fails above the critical height.
+   Culmann height, `validate-physics vertical_cut --param preset=NAME --param height=H`, and with its critical
+   height, bisected between a face that stands 5 s and one that falls, `validate-physics critical_height --param
+   preset=NAME` (gate: within 25% of Culmann's; `validate-physics resolution` runs it for dirt and kanto_loam at
+   the coarse and default resolutions, docs/resolution.md). With Rumpf's bond force alone the critical height read
+   0.72 / 0.59 x Culmann's for dirt (phi 40 deg) at coarse / default and 1.16 / 1.09 x for kanto_loam (phi 20 deg):
+   the bonds' strength follows 1 / tan(phi) more weakly than Rumpf's c = sigma_t tan(phi) says, so the mapping
+   multiplies the bond force by 1.716 tan(phi)^0.65 (soil.COHESION_SCALE, COHESION_EXPONENT); dirt then read
+   1.09 x at coarse (see docs/resolution.md for the rest). Raise or lower `cohesion` for a soil whose cut is known.
 5. **Adhesion** `adhesion` (soil-tool c_a, Pa; an attraction and as much tangential grip per tool contact, see
    soil.py): check with the blade, `validate-physics blade_cut --param adhesion=CA` against the same cut without
    it; the increments of draft and vertical force compare with the earthmoving equation's c_a terms. Sand, d 0.15 m,
