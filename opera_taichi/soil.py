@@ -21,7 +21,8 @@ COHESION_RANGE = 0.1      # cohesive band D = 0.1 R beyond contact (also the soi
 # face that stands 5 s and one that falls) read 0.72 / 0.59 x Culmann's for dirt (phi 40 deg, c 2.1 kPa) at the
 # coarse / default resolution and 1.16 / 1.09 x for kanto_loam (phi 20 deg, c 10 kPa): the bonds' strength follows
 # 1 / tan(phi) more weakly than Rumpf's. The factor that puts both soils at Culmann's on the mean of the two
-# resolutions (assuming the height goes as the bond force) is 1.716 tan(phi)^0.65 (docs/resolution.md).
+# resolutions (assuming the height goes as the bond force) is 1.716 tan(phi)^0.65; with it dirt read 1.09 / 0.97 x,
+# kanto_loam 1.16 / 0.97 x (docs/resolution.md).
 COHESION_SCALE = 1.716
 COHESION_EXPONENT = 0.65
 # Tool area per soil-tool contact, in R^2: the grains touching a flat face cover about 55% of it in projection (a

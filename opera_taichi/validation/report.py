@@ -200,8 +200,9 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    the coarse and default resolutions, docs/resolution.md). With Rumpf's bond force alone the critical height read
    0.72 / 0.59 x Culmann's for dirt (phi 40 deg) at coarse / default and 1.16 / 1.09 x for kanto_loam (phi 20 deg):
    the bonds' strength follows 1 / tan(phi) more weakly than Rumpf's c = sigma_t tan(phi) says, so the mapping
-   multiplies the bond force by 1.716 tan(phi)^0.65 (soil.COHESION_SCALE, COHESION_EXPONENT); dirt then read
-   1.09 x at coarse (see docs/resolution.md for the rest). Raise or lower `cohesion` for a soil whose cut is known.
+   multiplies the bond force by 1.716 tan(phi)^0.65 (soil.COHESION_SCALE, COHESION_EXPONENT). With it: dirt 1.09 /
+   0.97 x, kanto_loam 1.16 / 0.97 x (kanto_loam's did not follow its 11% weaker bonds at coarse: its face fails
+   by friction more than by tension). Raise or lower `cohesion` for a soil whose cut is known.
 5. **Adhesion** `adhesion` (soil-tool c_a, Pa; an attraction and as much tangential grip per tool contact, see
    soil.py): check with the blade, `validate-physics blade_cut --param adhesion=CA` against the same cut without
    it; the increments of draft and vertical force compare with the earthmoving equation's c_a terms. Sand, d 0.15 m,
