@@ -44,8 +44,14 @@ which the partner reads from its reverse segment. Every sum has a fixed order, s
 do not depend on thread scheduling (deterministic for a seed, backend and thread count), and the two sides of a
 pair get exactly opposite forces: linear momentum is conserved to round-off.
 """
+import types
+
 import taichi as ti
 
+# The substep kernels' particle loops run on Taichi's thread pool, or serially in the calling thread (the *_serial
+# variants, CPU only): a parallel loop costs a thread-pool round trip (15-40 us on a 2-core host) even when it has
+# nothing to do, more than a few hundred awake particles cost to compute; DemSoil picks one per run of substeps.
+SERIAL_LOOPS = False
 MAX_TOOLS = 4
 MAX_PITS = 16
 WALL_SLOTS = 4
@@ -114,7 +120,14 @@ S_SPEED2 = 1      # max squared particle speed since the last reset
 S_NONFINITE = 2   # particles with a non-finite state since the last reset
 S_LOST_MASS = 3   # cumulative mass deactivated (left the domain), kg
 S_LOST_COUNT = 4  # cumulative count deactivated
-N_STAT = 8
+# Several substeps run as one compute graph (DemSoil._substeps): a substep after which a particle moved more than
+# half the skin since the lists were built halts the ones after it (they do nothing), and the host rebuilds the
+# lists and runs the rest: the same substeps, the same rebuilds as launching them one by one.
+S_RUN = 5         # 1 while this substep runs (set by mark_blocks), 0 once halted or done
+S_HALT = 6        # 1: the lists need a rebuild before the next substep
+S_DONE = 7        # substeps done since begin_chunk
+S_ACTIVE = 8      # most particle slots in the listed blocks of one substep since begin_chunk
+N_STAT = 9
 
 # per-block partial sums (step): tool wrenches 0..6*MAX_TOOLS-1, then these
 PART_LOST_MASS = 6 * MAX_TOOLS
@@ -226,8 +239,7 @@ def cohesion_force(gap, prm: ti.template()):
 
 
 # ----------------------------------------------------------------------------------------------- pair forces
-@ti.kernel
-def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
+def _pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
                 rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, surf_id: I32_2, prm: F64_1, dt: ti.f64,
                 blk_list: I32_1, block: ti.i32):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
@@ -240,6 +252,7 @@ def pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
     # only the blocks mark_blocks listed: in the others all are asleep with sleeping partners, every pair skipped
+    ti.loop_config(serialize=SERIAL_LOOPS)
     for slot in range(blk_list[0] * block):
         i = blk_list[slot // block + 1] * block + slot % block
         if i >= n_act:
@@ -503,17 +516,24 @@ def _mark_hot(i, block, blk_hot: ti.template(), nbr_off: ti.template(), nbr_j: t
         blk_hot[rev_holder[q] // block] = 1
 
 
-@ti.kernel
-def mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_hot: I32_1, blk_active: I32_1,
-                blk_box: KIN, blk_list: I32_1):
+def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_hot: I32_1, blk_active: I32_1,
+                blk_box: KIN, blk_list: I32_1, stat: F64_1, todo: ti.i32):
     """Which blocks of particles take part in this substep: hot ones (marked by the last step: an awake particle in
     them or among their partners; all of them after a rebuild) and those whose bounding box meets a tool's sphere.
     The others are asleep with sleeping partners only and out of every tool's reach, so computing them would
     change nothing: a sleeping bed costs what its blocks cost to skip, whatever its size. skip = 0: all active.
     blk_list[0] = the number of active blocks, blk_list[1:] their indices (in no fixed order: each block's work
-    is the same whichever thread does it, and the sums are taken in block order)."""
+    is the same whichever thread does it, and the sums are taken in block order).
+
+    A halted chunk (S_HALT) or one that has done its `todo` substeps lists no block and clears S_RUN: this
+    substep and its step() do nothing."""
     n_blocks = (n_act + block - 1) // block
     blk_list[0] = 0
+    stat[S_RUN] = 1.0
+    if stat[S_HALT] != 0.0 or stat[S_DONE] >= todo:
+        stat[S_RUN] = 0.0
+        n_blocks = 0
+    ti.loop_config(serialize=SERIAL_LOOPS)
     for b in range(n_blocks):
         active = 1
         if skip != 0 and blk_hot[b] == 0:
@@ -541,8 +561,7 @@ def fill_rev_holder(n_act: ti.i32, nbr_off: I32_1, rev_pos: I32_1, rev_holder: I
             rev_holder[rev_pos[e]] = i
 
 
-@ti.kernel
-def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1,
+def _step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1,
          pair_out: PAIR_OUT, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
          prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64, block: ti.i32,
          blk_active: I32_1, blk_list: I32_1, blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1,
@@ -556,9 +575,12 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
     would change); each particle awake after its step marks its block and its partners' blocks hot, and the block's
     bounding box is kept for mark_blocks' tool test.
     """
-    stat[S_DISP2] = 0.0
+    running = stat[S_RUN] != 0.0
+    if running:
+        stat[S_DISP2] = 0.0
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     n_blocks = (n_act + block - 1) // block
+    ti.loop_config(serialize=SERIAL_LOOPS)
     for kb in range(blk_list[0]):
         blk = blk_list[kb + 1]
         box_lo = vec3(HUGE)
@@ -761,8 +783,11 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
         partial[blk, PART_NONFINITE] = nonfinite
     # sums in block order (not atomics in thread order): the tool wrench fed back to the machine is
     # bit-for-bit reproducible. One serial task, so the sums stay in registers.
+    if not running:
+        n_blocks = 0
     ti.loop_config(serialize=True)
     for _ in range(1):
+        stat[S_ACTIVE] = ti.max(stat[S_ACTIVE], ti.cast(blk_list[0] * block, ti.f64))
         acc = ti.Vector.zero(ti.f64, PART_WIDTH)
         for blk in range(n_blocks):
             if blk_active[blk] != 0:  # (a skipped block's row is stale; it would have added zeros)
@@ -775,8 +800,11 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
         stat[S_NONFINITE] += acc[PART_NONFINITE]
     # tools move kinematically: p += v dt, R <- Rot(w dt) R (serial: a parallel loop over four rows would cost a
     # thread-pool round trip per substep, which small soils feel)
+    n_tools = MAX_TOOLS
+    if not running:
+        n_tools = 0
     ti.loop_config(serialize=True)
-    for t in range(MAX_TOOLS):
+    for t in range(n_tools):
         if tools[t, T_ON] > 0.0:
             vel = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2])
             ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
@@ -786,7 +814,29 @@ def step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN
             for a in ti.static(range(3)):
                 for b in ti.static(range(3)):
                     tools[t, T_ROT + 3 * a + b] = rot[a, b]
+    if running:
+        stat[S_DONE] += 1.0
+        if stat[S_DISP2] > 0.25 * prm[P_SKIN] * prm[P_SKIN]:
+            stat[S_HALT] = 1.0
     return stat[S_DISP2]
+
+
+def kernel_variant(fn, **constants):
+    """fn as a Taichi kernel compiled with some of this module's constants replaced (Taichi reads module globals
+    when it compiles a kernel): one source for both variants."""
+    scope = dict(fn.__globals__)
+    scope.update(constants)
+    copy = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
+    copy.__annotations__ = fn.__annotations__
+    return ti.kernel(copy)
+
+
+mark_blocks = ti.kernel(_mark_blocks)
+pair_forces = ti.kernel(_pair_forces)
+step = ti.kernel(_step)
+mark_blocks_serial = kernel_variant(_mark_blocks, SERIAL_LOOPS=True)
+pair_forces_serial = kernel_variant(_pair_forces, SERIAL_LOOPS=True)
+step_serial = kernel_variant(_step, SERIAL_LOOPS=True)
 
 
 # ----------------------------------------------------------------------------------------------- neighbour build
@@ -1167,28 +1217,36 @@ def mass_in_box(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, partial: F64_
 
 
 @ti.kernel
-def begin_advance(tools_host: F64_2, upload: ti.i32, tools: F64_2, tool_acc: F64_2, stat: F64_1):
-    """Copy the tool rows set on the host (if upload; tools_host is a NumPy array: one launch instead of a
-    from_numpy and a launch), zero the tool accumulators and the per-call divergence diagnostics."""
-    if upload != 0:
-        for t, c in ti.ndrange(MAX_TOOLS, T_WIDTH):
-            tools[t, c] = tools_host[t, c]
-    for t, c in ti.ndrange(MAX_TOOLS, 6):
-        tool_acc[t, c] = 0.0
-    stat[S_SPEED2] = 0.0
-    stat[S_NONFINITE] = 0.0
+def begin_chunk(first: ti.i32, upload: ti.i32, tools_in: F64_2, tools: F64_2, tool_acc: F64_2, stat: F64_1):
+    """Start a run of substeps: nothing done, not halted. first (the advance's first run): copy the tool rows set
+    on the host (if upload), zero the tool accumulators and the per-call divergence diagnostics."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        if first != 0:
+            if upload != 0:
+                for t, c in ti.ndrange(MAX_TOOLS, T_WIDTH):
+                    tools[t, c] = tools_in[t, c]
+            for t, c in ti.ndrange(MAX_TOOLS, 6):
+                tool_acc[t, c] = 0.0
+            stat[S_SPEED2] = 0.0
+            stat[S_NONFINITE] = 0.0
+        stat[S_HALT] = 0.0
+        stat[S_DONE] = 0.0
+        stat[S_ACTIVE] = 0.0
 
 
 @ti.kernel
 def end_advance(tools: F64_2, tool_acc: F64_2, stat: F64_1, report: F64_1):
-    """Everything the caller reads after advance() in one NumPy array (written in place on the CPU, copied back
-    on a GPU): tool rows, accumulators, stat."""
-    for t, c in ti.ndrange(MAX_TOOLS, T_WIDTH):
-        report[t * T_WIDTH + c] = tools[t, c]
-    for t, c in ti.ndrange(MAX_TOOLS, 6):
-        report[MAX_TOOLS * T_WIDTH + t * 6 + c] = tool_acc[t, c]
-    for c in range(N_STAT):
-        report[MAX_TOOLS * (T_WIDTH + 6) + c] = stat[c]
+    """Everything the caller reads after a run of substeps in one array (one copy to the host): tool rows,
+    accumulators, stat. One serial task."""
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        for t, c in ti.ndrange(MAX_TOOLS, T_WIDTH):
+            report[t * T_WIDTH + c] = tools[t, c]
+        for t, c in ti.ndrange(MAX_TOOLS, 6):
+            report[MAX_TOOLS * T_WIDTH + t * 6 + c] = tool_acc[t, c]
+        for c in range(N_STAT):
+            report[MAX_TOOLS * (T_WIDTH + 6) + c] = stat[c]
 
 
 REPORT_SIZE = MAX_TOOLS * (T_WIDTH + 6) + N_STAT

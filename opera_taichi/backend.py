@@ -1,6 +1,9 @@
 """One place that starts Taichi, so every module agrees on the backend."""
 from __future__ import annotations
 
+import ctypes
+
+import numpy as np
 import taichi as ti
 
 from .errors import UserError
@@ -43,3 +46,18 @@ def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> s
 
 def current_arch() -> str | None:
     return _started
+
+
+def host_view(arr) -> np.ndarray | None:
+    """A NumPy view of a Taichi ndarray's memory on the CPU backends (the kernels run in this process's memory and
+    have finished when their launch returns), else None: reading a few numbers back then costs nothing, where
+    to_numpy/from_numpy launch a kernel each (~0.2 ms from Python, once per rigid step)."""
+    if _started not in ("x64", "arm64") or arr.dtype not in (ti.f64, ti.f32, ti.i32):
+        return None
+    prog = ti.lang.impl.get_runtime().prog
+    if not hasattr(prog, "get_ndarray_data_ptr_as_int"):
+        return None
+    ctype = {ti.f64: ctypes.c_double, ti.f32: ctypes.c_float, ti.i32: ctypes.c_int32}[arr.dtype]
+    shape = tuple(arr.shape)
+    buffer = (ctype * int(np.prod(shape))).from_address(prog.get_ndarray_data_ptr_as_int(arr.arr))
+    return np.ctypeslib.as_array(buffer).reshape(shape)

@@ -10,8 +10,10 @@ table of ~2 n buckets, so memory follows the particle count, not the domain) and
 reorders the particle arrays for memory locality. Verlet lists hold every pair closer than r_i + r_j + D + skin
 once (half lists, found through a half stencil of cells); they are rebuilt only when some particle has moved
 more than skin / 2 (a reduction in the integration kernel) or left the domain, and contact springs are carried
-over at a rebuild. One substep = two kernels (pair forces; everything else and the integration), launched
-through a Taichi compute graph.
+over at a rebuild. One substep = three kernels (the blocks that take part; pair forces; everything else and the
+integration). The substeps of one rigid step run as one Taichi compute graph, which halts itself after a substep
+that needs a rebuild (the host rebuilds and runs the rest), so a rigid step costs one launch from Python; on the
+CPU its tool rows and report are read and written through NumPy views of the arrays, without a copy kernel.
 """
 from __future__ import annotations
 
@@ -22,9 +24,10 @@ from dataclasses import asdict
 
 import numpy as np
 import taichi as ti
-from scipy.spatial.transform import Rotation
 
+from .backend import current_arch, host_view
 from .errors import DivergenceError, UserError
+from .geometry import quat_to_matrix
 from .kernels import dem
 from .paths import cache_dir
 from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
@@ -53,6 +56,11 @@ def _vec3(value, key: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise UserError(f"{key}: expected finite numbers, got {value!r}")
     return arr
+
+
+def _unit(quat) -> np.ndarray:
+    q = np.asarray(quat, dtype=np.float64)
+    return q / math.sqrt(float(q @ q))
 
 
 def _check_domain(domain_min, domain_max) -> tuple[np.ndarray, np.ndarray]:
@@ -111,46 +119,65 @@ def _available_memory() -> int | None:
         return None
 
 
-_GRAPH: dict = {}
+_GRAPHS: dict = {}
+CHUNK_MAX = 32  # longest run of substeps in one compute graph (longer advances run several)
+# A run of substeps loops serially on the CPU when the last one listed fewer particle slots than this (the
+# thread pool's round trips would cost more than a second core gives back; see kernels/dem.py SERIAL_LOOPS)
+SERIAL_BELOW = 4096
 
 
-def _substep_graph():
-    """Compute graph of one substep, built once per Taichi runtime; None if the backend cannot build graphs
-    (then the kernels are launched directly). Launching an ndarray kernel from Python costs ~20 us per argument,
-    which would dominate small soils; a graph binds the arguments in C++."""
+def _substep_kernels(serial: bool):
+    if serial:
+        return dem.mark_blocks_serial, dem.pair_forces_serial, dem.step_serial
+    return dem.mark_blocks, dem.pair_forces, dem.step
+
+
+def _chunk_graph(count: int, serial: bool):
+    """Compute graph of `count` substeps (begin_chunk, count x (mark_blocks, pair_forces, step), end_advance), built
+    once per Taichi runtime and count; None if the backend cannot build graphs (then the kernels are launched
+    directly). Launching an ndarray kernel from Python costs ~20 us per argument, which would dominate small soils;
+    a graph binds the arguments in C++, and one graph per rigid step launches from Python once. serial: the
+    kernels whose particle loops run in the calling thread."""
     runtime = id(ti.lang.impl.get_runtime().prog)
-    if _GRAPH.get("runtime") != runtime:
-        _GRAPH.clear()
-        _GRAPH["runtime"] = runtime
+    if _GRAPHS.get("runtime") != runtime:
+        _GRAPHS.clear()
+        _GRAPHS["runtime"] = runtime
+    key = (count, serial)
+    if key not in _GRAPHS:
         try:
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
-            kinds = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr_j=(ti.i32, 1),
-                         nbr_h=(dem.vec6f, 1), pair_out=(dem.vec3f, 2), own=(dem.vec3, 2), prm=(ti.f64, 1),
-                         flags=(ti.i32, 1), x_ref=(dem.vec4, 1), rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1),
-                         surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2), tools=(ti.f64, 2), tool_acc=(ti.f64, 2),
-                         sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2), blk_hot=(ti.i32, 1),
-                         blk_active=(ti.i32, 1), blk_box=(dem.vec3, 2), rev_holder=(ti.i32, 1),
-                         blk_list=(ti.i32, 1))
-            sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in kinds.items()}
-            sym.update(n_act=arg(kind.SCALAR, "n_act", ti.i32), dt=arg(kind.SCALAR, "dt", ti.f64),
-                       bulk_damping=arg(kind.SCALAR, "bulk_damping", ti.f64), block=arg(kind.SCALAR, "block", ti.i32),
-                       skip=arg(kind.SCALAR, "skip", ti.i32))
+            sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in _NDARRAYS.items()}
+            sym.update({name: arg(kind.SCALAR, name, dtype) for name, dtype in _SCALARS.items()})
+            mark, pair, step = _substep_kernels(serial)
             builder = ti.graph.GraphBuilder()
-            builder.dispatch(dem.mark_blocks, *(sym[a] for a in _MARK_ARGS))
-            builder.dispatch(dem.pair_forces, *(sym[a] for a in _PAIR_ARGS))
-            builder.dispatch(dem.step, *(sym[a] for a in _STEP_ARGS))
-            _GRAPH["graph"] = builder.compile()
+            builder.dispatch(dem.begin_chunk, *(sym[a] for a in _BEGIN_ARGS))
+            for _ in range(count):
+                builder.dispatch(mark, *(sym[a] for a in _MARK_ARGS))
+                builder.dispatch(pair, *(sym[a] for a in _PAIR_ARGS))
+                builder.dispatch(step, *(sym[a] for a in _STEP_ARGS))
+            builder.dispatch(dem.end_advance, *(sym[a] for a in _END_ARGS))
+            _GRAPHS[key] = builder.compile()
         except Exception:  # noqa: BLE001 - any failure here just means direct launches
-            _GRAPH["graph"] = None
-    return _GRAPH["graph"]
+            _GRAPHS[key] = None
+    return _GRAPHS[key]
 
 
-_MARK_ARGS = ("n_act", "block", "skip", "tools", "blk_hot", "blk_active", "blk_box", "blk_list")
+_NDARRAYS = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr_j=(ti.i32, 1), nbr_h=(dem.vec6f, 1),
+                 pair_out=(dem.vec3f, 2), own=(dem.vec3, 2), prm=(ti.f64, 1), flags=(ti.i32, 1), x_ref=(dem.vec4, 1),
+                 rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1), surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2),
+                 tools=(ti.f64, 2), tool_acc=(ti.f64, 2), sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2),
+                 blk_hot=(ti.i32, 1), blk_active=(ti.i32, 1), blk_box=(dem.vec3, 2), rev_holder=(ti.i32, 1),
+                 blk_list=(ti.i32, 1), tools_in=(ti.f64, 2), report=(ti.f64, 1))
+_SCALARS = dict(n_act=ti.i32, dt=ti.f64, bulk_damping=ti.f64, block=ti.i32, skip=ti.i32, todo=ti.i32, first=ti.i32,
+                upload=ti.i32)
+_BEGIN_ARGS = ("first", "upload", "tools_in", "tools", "tool_acc", "stat")
+_MARK_ARGS = ("n_act", "block", "skip", "tools", "blk_hot", "blk_active", "blk_box", "blk_list", "stat", "todo")
 _PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "pair_out", "own", "surf_id", "prm",
               "dt", "blk_list", "block")
 _STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "pair_out", "surf_id", "surf_h",
               "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping", "block", "blk_active",
               "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "rev_holder")
+_END_ARGS = ("tools", "tool_acc", "stat", "report")
 
 
 class DemSoil:
@@ -190,6 +217,8 @@ class DemSoil:
         self.n_act = 0
         self._entries = 0
         self.rebuilds = 0       # neighbour-list rebuilds so far (diagnostics)
+        self.settle_speed = 0.0  # the fastest grain at the end of settling when the beds did not come to rest
+        self.warnings: list[str] = []
         self.bed_packing: float | None = None  # solid fraction of the settled beds (None: no beds)
         self._tool_names: list[str] = []
         self._sdf_blocks: list[np.ndarray] = []
@@ -204,7 +233,12 @@ class DemSoil:
         self._tools = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))
         self._tool_acc = ti.ndarray(ti.f64, (dem.MAX_TOOLS, 6))
         self._sdf = ti.ndarray(dem.vec4f, 1)
-        self._report = np.zeros(dem.REPORT_SIZE)  # written by end_advance
+        self._serial_cpu = current_arch() in ("x64", "arm64")  # serial loops for small work (CPU only)
+        self._active_slots = 0
+        self._tools_in = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))  # the host's tool rows, uploaded
+        self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)  # written by end_advance, read once per run of substeps
+        # (zero-copy views of both on the CPU; None on a GPU, where they are copied)
+        self._tools_in_view, self._report_view = host_view(self._tools_in), host_view(self._report)
         self._allocate(0)
         if self.beds:
             self._build_beds(settle_time)
@@ -557,6 +591,7 @@ class DemSoil:
             try:
                 self._load_state(path)
                 self.bed_packing = self._measure_packing()
+                self._check_settled(settle_time)
                 return
             except (OSError, KeyError, ValueError):
                 pass  # unreadable cache entry: settle again
@@ -567,12 +602,19 @@ class DemSoil:
         if self.use_cache:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(f".tmp{np.random.randint(1 << 30)}.npz")
-            np.savez(tmp, **state)
+            np.savez(tmp, settle_speed=np.array(self.settle_speed), **state)
             tmp.replace(path)
         # go on from exactly what a run from the cache starts from (the settled particles alone, with their hash
         # table sized for them): the first run of a scene then gives the same numbers as every later one
         self._set_state(state)
         self.bed_packing = self._measure_packing()  # measured as a run from the cache measures it
+        self._check_settled(settle_time)
+
+    def _check_settled(self, settle_time: float) -> None:
+        if self.settle_speed > 0.0:
+            self.warnings.append(f"soil: the bed did not come to rest in soil.settle_time = {settle_time:g} s (a grain "
+                                 f"still moved at {self.settle_speed:.3g} m/s); it creeps at the start of the run: "
+                                 f"raise soil.settle_time")
 
     def _pour_lattice(self) -> tuple[np.ndarray, np.ndarray]:
         """Jittered cubic lattice over each pit, tall enough that the settled bed overfills it a little."""
@@ -633,7 +675,8 @@ class DemSoil:
         self._trim_to_beds()
         # a loose (friction-poured) bed keeps creeping for a while after levelling: rest it until quiet
         self._run_until_quiet(max(0.5 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
-        self._run_until_quiet(max(0.3 * settle_time, 1e-3), 0.0, quiet, 0.0)
+        speed = self._run_until_quiet(max(0.3 * settle_time, 1e-3), 0.0, quiet, 0.0)
+        self.settle_speed = speed if speed >= quiet else 0.0
         kin = self._kin.to_numpy()
         kin[:, 1:] = 0.0
         self._kin.from_numpy(kin)
@@ -647,18 +690,20 @@ class DemSoil:
         prm[dem.P_SLEEP_STEPS] = 0.0
         return prm
 
-    def _run_until_quiet(self, limit: float, at_least: float, quiet: float, damping: float) -> None:
+    def _run_until_quiet(self, limit: float, at_least: float, quiet: float, damping: float) -> float:
+        """Substeps until the fastest grain is slower than `quiet` (after at least `at_least`) or for `limit` s;
+        returns the fastest grain's speed at the end."""
         chunk = max(1, int(round(0.01 / self.dt)))
         elapsed = 0.0
         while elapsed < limit:
-            for _ in range(chunk):
-                self._substep(self.dt, damping)
+            self._substeps(chunk, self.dt, damping)
             elapsed += chunk * self.dt
             if self._on_settle is not None:
                 self._settled_for += chunk * self.dt
                 self._on_settle(self._settled_for, self._settle_budget)
             if elapsed >= at_least and self._totals()[5] < quiet:
                 break
+        return float(self._totals()[5])
 
     def _measure_packing(self) -> float | None:
         """Solid volume of the active particles centred in the beds over the beds' volume."""
@@ -746,6 +791,7 @@ class DemSoil:
     def _load_state(self, path) -> None:
         with np.load(path) as f:
             self._set_state({name: f[name] for name in self._STATE})
+            self.settle_speed = float(f["settle_speed"]) if "settle_speed" in f.files else 0.0
 
     def _set_state(self, arrays: dict[str, np.ndarray]) -> None:
         n = len(arrays["kin"])
@@ -814,7 +860,7 @@ class DemSoil:
         row = self._tools_host[i]
         row[dem.T_ON] = 1.0
         row[dem.T_POS:dem.T_POS + 3] = np.asarray(position, dtype=np.float64)
-        row[dem.T_ROT:dem.T_ROT + 9] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix().ravel()
+        row[dem.T_ROT:dem.T_ROT + 9] = quat_to_matrix(_unit(quat_xyzw)).ravel()
         row[dem.T_VEL:dem.T_VEL + 3] = np.asarray(lin_vel, dtype=np.float64)
         row[dem.T_ANG:dem.T_ANG + 3] = np.asarray(ang_vel, dtype=np.float64)
         self._tools_dirty = True
@@ -828,24 +874,59 @@ class DemSoil:
     def _substep(self, h: float, damping: float) -> None:
         """One soil substep (pair forces; then every other force, integration, tools moved); rebuild the
         neighbour lists when needed."""
-        args = dict(kin=self._kin, prop=self._prop, flags=self._flags, x_ref=self._x_ref, nbr_off=self._nbr_off,
+        self._substeps(1, h, damping)
+
+    def _kernel_args(self, h: float, damping: float) -> dict:
+        """The substep kernels' arguments by name (the arrays a rebuild swaps included)."""
+        return dict(kin=self._kin, prop=self._prop, flags=self._flags, x_ref=self._x_ref, nbr_off=self._nbr_off,
                     nbr_j=self._nbr_j, nbr_h=self._nbr_h, pair_out=self._pair_out, own=self._own,
                     rev_off=self._rev_off, rev_pos=self._rev_pos, surf_id=self._surf_id, surf_h=self._surf_h,
                     tools=self._tools, tool_acc=self._tool_acc, sdf=self._sdf, prm=self._prm, stat=self._stat,
                     partial=self._partial, n_act=self.n_act, dt=h, bulk_damping=damping,
                     block=dem.reduction_block(self.n_act), blk_hot=self._blk_hot, blk_active=self._blk_active,
                     blk_box=self._blk_box, rev_holder=self._rev_holder, blk_list=self._blk_list,
-                    skip=int(self.skip_sleeping_blocks))
-        graph = _substep_graph()
-        if graph is not None:
-            graph.run(args)
-            disp2 = self._stat[dem.S_DISP2]
-        else:
-            dem.mark_blocks(*(args[a] for a in _MARK_ARGS))
-            dem.pair_forces(*(args[a] for a in _PAIR_ARGS))
-            disp2 = dem.step(*(args[a] for a in _STEP_ARGS))
-        if disp2 > 0.25 * self.skin * self.skin:
-            self._rebuild(keep_still=True)
+                    skip=int(self.skip_sleeping_blocks), tools_in=self._tools_in, report=self._report,
+                    first=0, upload=0, todo=0)
+
+    def _substeps(self, count: int, h: float, damping: float, first: bool = False) -> np.ndarray:
+        """`count` substeps, run as compute graphs of up to CHUNK_MAX substeps; the neighbour lists are rebuilt
+        after each substep that moved a particle more than half the skin since they were built (the graph halts
+        there, the rest runs after the rebuild). first: the advance's first substeps (upload the tool rows if
+        they changed, zero the tool sums). Returns the last report (end_advance's layout)."""
+        args = self._kernel_args(h, damping)
+        args.update(first=int(first), upload=int(first and self._tools_dirty))
+        if args["upload"]:
+            if self._tools_in_view is not None:
+                self._tools_in_view[:] = self._tools_host
+            else:
+                self._tools_in.from_numpy(self._tools_host)
+            self._tools_dirty = False
+        left = count
+        while True:
+            k = min(left, CHUNK_MAX)
+            args["todo"] = k
+            serial = self._serial_cpu and self._active_slots < SERIAL_BELOW
+            graph = _chunk_graph(k, serial)
+            if graph is not None:
+                graph.run(args)
+            else:
+                mark, pair, step = _substep_kernels(serial)
+                dem.begin_chunk(*(args[a] for a in _BEGIN_ARGS))
+                for _ in range(k):
+                    mark(*(args[a] for a in _MARK_ARGS))
+                    pair(*(args[a] for a in _PAIR_ARGS))
+                    step(*(args[a] for a in _STEP_ARGS))
+                dem.end_advance(*(args[a] for a in _END_ARGS))
+            args.update(first=0, upload=0)
+            report = self._report.to_numpy() if self._report_view is None else self._report_view.copy()
+            stat = report[dem.MAX_TOOLS * (dem.T_WIDTH + 6):]
+            left -= int(stat[dem.S_DONE])
+            self._active_slots = int(stat[dem.S_ACTIVE])
+            if stat[dem.S_HALT] != 0.0:
+                self._rebuild(keep_still=True)
+                args = self._kernel_args(h, damping)
+            if left <= 0:
+                return report
 
     def advance(self, duration: float) -> np.ndarray:
         """Advance by `duration` in n = ceil(duration / dt) equal substeps, tools moving kinematically.
@@ -858,13 +939,8 @@ class DemSoil:
             raise ValueError(f"duration must be positive, got {duration!r}")
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
         h = duration / n_sub
-        dem.begin_advance(self._tools_host, int(self._tools_dirty), self._tools, self._tool_acc, self._stat)
-        self._tools_dirty = False
-        for _ in range(n_sub):
-            self._substep(h, 0.0)
+        report = self._substeps(n_sub, h, 0.0, first=True)
         self.time += duration
-        report = self._report
-        dem.end_advance(self._tools, self._tool_acc, self._stat, report)
         tools_end = dem.MAX_TOOLS * dem.T_WIDTH
         self._tools_host[:] = report[:tools_end].reshape(dem.MAX_TOOLS, dem.T_WIDTH)
         n_tools = len(self._tool_names)
@@ -992,7 +1068,7 @@ class DemSoil:
         """
         if self.n_act == 0:
             return 0.0
-        rot = Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)).as_matrix()
+        rot = quat_to_matrix(_unit(quat_xyzw))
         return float(dem.mass_in_box(self.n_act, self._kin, self._prop, self._flags, self._partial,
                                      ti.Vector(np.asarray(position, dtype=np.float64).tolist(), ti.f64),
                                      ti.Matrix(rot.tolist(), ti.f64),

@@ -90,6 +90,7 @@ class BulletMachine:
         self._speed_cmd = np.zeros(n)        # the motors' speed commands of the last step, rad/s
         self._clip_warned: set[str] = set()
         self._pending_wrenches: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._link_cache: dict[int, tuple] = {}  # link states of the current pose (emptied when the world moves)
 
         self._wheels_left, self._wheels_right = [], []
         self._wheel_speed = (0.0, 0.0)
@@ -229,6 +230,7 @@ class BulletMachine:
         self._pending_wrenches.clear()
 
     def post_step(self) -> None:
+        self._link_cache.clear()
         self._read_joints()
 
     def step(self) -> None:
@@ -236,6 +238,7 @@ class BulletMachine:
         self.world.step()
 
     def _read_joints(self) -> None:
+        self._link_cache.clear()
         states = pb.getJointStates(self.body, self._indices, physicsClientId=self.client)
         self._q = np.array([s[0] for s in states])
         self._qd = np.array([s[1] for s in states])
@@ -305,6 +308,7 @@ class BulletMachine:
         self._targets, self._qd_targets = s.q_target.copy(), s.qd_target.copy()
         self._velocity_mode, self._speed_cmd = s.velocity_mode.astype(bool).copy(), s.speed_cmd.copy()
         self._hold = bool(s.hold)
+        self._link_cache.clear()
         self._wheel_speed = (float(s.track_speeds[0]), float(s.track_speeds[1]))
         self._pending_wrenches.clear()
 
@@ -316,6 +320,12 @@ class BulletMachine:
         return self._link_state(self.link_index[link])
 
     def _link_state(self, index: int):
+        cached = self._link_cache.get(index)
+        if cached is None:
+            cached = self._link_cache[index] = self._query_link_state(index)
+        return tuple(a.copy() for a in cached)
+
+    def _query_link_state(self, index: int):
         c = self.client
         if index == -1:
             com, com_orn = pb.getBasePositionAndOrientation(self.body, physicsClientId=c)

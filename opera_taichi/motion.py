@@ -8,6 +8,7 @@ Three kinds, all ending as a smooth joint-space profile:
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from pathlib import Path
 
 import numpy as np
@@ -23,15 +24,21 @@ class JointProfile:
     """Per-joint time profile; holds the first value before the start and the last after the end."""
 
     def __init__(self, times: dict[str, np.ndarray], values: dict[str, np.ndarray], *, linear: bool = False):
+        # per joint: breakpoints and the cubic's coefficients on each interval (highest power first); a linear
+        # profile has zero cubic and quadratic terms. Evaluated in plain Python (Horner): a controller asks once per
+        # rigid step, where SciPy's call overhead cost more than the rest of the step's Python
         self._curves = {}
         for joint, t in times.items():
-            v = values[joint]
+            t = np.asarray(t, dtype=np.float64)
+            v = np.asarray(values[joint], dtype=np.float64)
             if len(t) == 1:
-                self._curves[joint] = (t, v, None)
+                coeffs = np.zeros((0, 4))
             elif linear:
-                self._curves[joint] = (t, v, None)
+                slope = np.diff(v) / np.diff(t)
+                coeffs = np.stack([np.zeros_like(slope), np.zeros_like(slope), slope, v[:-1]], axis=1)
             else:
-                self._curves[joint] = (t, v, PchipInterpolator(t, v, extrapolate=False))
+                coeffs = PchipInterpolator(t, v, extrapolate=False).c.T
+            self._curves[joint] = (t.tolist(), float(v[0]), float(v[-1]), coeffs.tolist())
         self.end_time = max((float(t[-1]) for t in times.values()), default=0.0)
 
     @property
@@ -40,15 +47,16 @@ class JointProfile:
 
     def targets(self, t: float) -> dict[str, float]:
         out = {}
-        for joint, (times, vals, interp) in self._curves.items():
+        for joint, (times, first, last, coeffs) in self._curves.items():
             if t <= times[0]:
-                out[joint] = float(vals[0])
+                out[joint] = first
             elif t >= times[-1]:
-                out[joint] = float(vals[-1])
-            elif interp is None:
-                out[joint] = float(np.interp(t, times, vals))
+                out[joint] = last
             else:
-                out[joint] = float(interp(t))
+                i = bisect_right(times, t) - 1
+                a, b, c, d = coeffs[i]
+                x = t - times[i]
+                out[joint] = ((a * x + b) * x + c) * x + d
         return out
 
 

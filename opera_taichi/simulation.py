@@ -62,6 +62,8 @@ class Simulation:
             self.arch = init_taichi(arch)
             self.soil = solver_class(model.soil.solver).from_model(model.soil, build_beds=build_beds,
                                                                    on_settle=on_settle)
+            for text in getattr(self.soil, "warnings", ()):
+                self._warn(text)
             for binding in model.bindings:
                 self.soil.add_tool(binding.name, binding.mesh)
             self.tool_wrench = np.zeros((len(model.bindings), 6))

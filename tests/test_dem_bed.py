@@ -143,3 +143,15 @@ def test_bed_lighter_than_the_time_step_assumed_is_a_time_step_error(tmp_path, m
     with pytest.raises(UserError, match=r"sim\.soil_dt: .* lighter"):
         DemSoil(light, domain_min=DOMAIN[0], domain_max=DOMAIN[1], beds=[((-0.12, -0.12, -0.15), (0.12, 0.12, 0.0))],
                 settle_time=0.3)
+
+
+def test_a_bed_that_did_not_come_to_rest_says_so(tmp_path, monkeypatch):
+    """Settling stops at soil.settle_time: a bed still moving then gets a warning naming the key (also when it comes
+    from the cache), and one given the time to come to rest gets none."""
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    short = make_bed(settle_time=0.2)
+    assert short.settle_speed > 0.0
+    assert len(short.warnings) == 1 and "soil.settle_time = 0.2 s" in short.warnings[0]
+    assert make_bed(settle_time=0.2).warnings == short.warnings
+    rested = make_bed(settle_time=2.0)
+    assert rested.settle_speed == 0.0 and rested.warnings == []

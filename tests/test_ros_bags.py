@@ -14,8 +14,9 @@ from opera_taichi.ros.topics import DEFAULT_RATES
 
 ROOT = Path(__file__).resolve().parent.parent
 DURATION = 1.5
+# (periods of whole rigid steps, 2 ms in the scene: a sample is taken at the first step at or after it is due)
 RATES = {"/clock": 100, "/zx120/joint_states": 25, "/zx120/odom": 25, "/zx120/base_link/pose": 25,
-         "/zx120/bucket/wrench": 40, "/tf": 25, "/zx120/soil_mass": 5, "/zx120/soil_volume": 5, "/terrain/points": 2}
+         "/zx120/bucket/wrench": 50, "/tf": 25, "/zx120/soil_mass": 5, "/zx120/soil_volume": 5, "/terrain/points": 2}
 TYPES = {"/clock": "rosgraph_msgs/msg/Clock", "/zx120/joint_states": "sensor_msgs/msg/JointState",
          "/zx120/odom": "nav_msgs/msg/Odometry", "/zx120/base_link/pose": "geometry_msgs/msg/PoseStamped",
          "/zx120/bucket/wrench": "geometry_msgs/msg/WrenchStamped", "/tf": "tf2_msgs/msg/TFMessage",
@@ -35,7 +36,7 @@ def _run(tmp_path, kind):
                           ["soil.overrides.radius=0.16", f"sim.duration={DURATION}", f"output.bag={kind}",
                            "output.plots=false",
                            # a bag takes the bridge's rates when the scene has one (the bridge itself is not started)
-                           "bridge={kind: ros1, rates: {bucket/wrench: 40, terrain: 2}}"])
+                           "bridge={kind: ros1, rates: {bucket/wrench: 50, terrain: 2}}"])
     out = tmp_path / kind
     ot.run_scene(scene, out_dir=out, quiet=True)
     return out
