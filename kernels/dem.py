@@ -554,6 +554,30 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_h
 
 
 @ti.kernel
+def mark_awake_blocks(n_act: ti.i32, block: ti.i32, kin: KIN, surf_id: I32_2, prm: F64_1, blk_hot: I32_1,
+                      blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1):
+    """After the particle order or the lists changed (a rebuild): each block's box anew, and hot the blocks that
+    hold an awake particle (or one asked to wake) or a partner of one, as step() would have marked them. The
+    others are asleep with sleeping partners: computing them would change nothing, so a rebuild does not make the
+    next substep walk the whole bed."""
+    n_blocks = (n_act + block - 1) // block
+    sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
+    for b in range(n_blocks):
+        lo = vec3(HUGE)
+        hi = vec3(-HUGE)
+        for i in range(b * block, ti.min(n_act, (b + 1) * block)):
+            lo = ti.min(lo, kin[i, 0])
+            hi = ti.max(hi, kin[i, 0])
+        blk_box[b, 0] = lo
+        blk_box[b, 1] = hi
+        blk_hot[b] = 0
+    for i in range(n_act):
+        word = surf_id[i, TOOL_BITS]
+        if sleep_steps <= 0 or (word >> CALM_SHIFT) < sleep_steps or (word & WAKE_BIT) != 0:
+            _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+
+
+@ti.kernel
 def fill_rev_holder(n_act: ti.i32, nbr_off: I32_1, rev_pos: I32_1, rev_holder: I32_1):
     """rev_holder[slot] = the particle that holds the pair of each reverse slot."""
     for i in range(n_act):

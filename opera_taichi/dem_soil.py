@@ -567,11 +567,15 @@ class DemSoil:
             self._blk_hot.fill(1)
 
     def _blocks_changed(self) -> None:
-        """After the particle order or the lists changed: every block takes part in the next substep, which
-        finds the sleeping ones again (mark_blocks)."""
+        """After the particle order or the lists changed: the blocks that take part in the next substep are found
+        anew from the particles (mark_awake_blocks)."""
         if self.n_act:
             dem.fill_rev_holder(self.n_act, self._nbr_off, self._rev_pos, self._rev_holder)
-        self._blk_hot.fill(1)
+            dem.mark_awake_blocks(self.n_act, dem.reduction_block(self.n_act), self._kin, self._surf_id, self._prm,
+                                  self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j, self._rev_off,
+                                  self._rev_holder)
+        else:
+            self._blk_hot.fill(1)
 
     # ------------------------------------------------------------------------------------------- beds
     def _cache_key(self, settle_time: float) -> str:
