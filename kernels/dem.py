@@ -516,6 +516,28 @@ def _mark_hot(i, block, blk_hot: ti.template(), nbr_off: ti.template(), nbr_j: t
         blk_hot[rev_holder[q] // block] = 1
 
 
+@ti.func
+def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
+    """Whether a world box may meet tool t's SDF grid (sample_sdf is HUGE outside it, so no grain outside can touch
+    or wake): the box against the grid's bounding sphere, then against the grid box along the tool's three axes
+    (conservative: a box that passes may still miss the grid, never the other way round)."""
+    rot = _tool_rotation(tools, t)
+    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
+        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+    d = ti.max(lo, ti.min(centre, hi)) - centre
+    meets = d.dot(d) <= tools[t, T_BS + 3] * tools[t, T_BS + 3]
+    if meets:
+        local = rot.transpose() @ (0.5 * (lo + hi) - centre)
+        box_half = 0.5 * (hi - lo)
+        for a in ti.static(range(3)):
+            grid_half = 0.5 * (tools[t, T_NX + a] - 1.0) * tools[t, T_H]
+            reach = grid_half + ti.abs(rot[0, a]) * box_half[0] + ti.abs(rot[1, a]) * box_half[1] + \
+                ti.abs(rot[2, a]) * box_half[2]
+            if ti.abs(local[a]) > reach * (1.0 + 1e-9) + 1e-9:
+                meets = False
+    return meets
+
+
 def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_hot: I32_1, blk_active: I32_1,
                 blk_box: KIN, blk_list: I32_1, stat: F64_1, todo: ti.i32):
     """Which blocks of particles take part in this substep: hot ones (marked by the last step: an awake particle in
@@ -541,12 +563,8 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_h
             lo = blk_box[b, 0]
             hi = blk_box[b, 1]
             for t in range(MAX_TOOLS):
-                if tools[t, T_ON] > 0.0:
-                    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
-                        _tool_rotation(tools, t) @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
-                    d = ti.max(lo, ti.min(centre, hi)) - centre
-                    if d.dot(d) <= tools[t, T_BS + 3] * tools[t, T_BS + 3]:
-                        active = 1
+                if tools[t, T_ON] > 0.0 and _box_meets_tool_grid(lo, hi, tools, t):
+                    active = 1
         blk_active[b] = active
         blk_hot[b] = 0
         if active != 0:
