@@ -239,9 +239,10 @@ def cohesion_force(gap, prm: ti.template()):
 
 
 # ----------------------------------------------------------------------------------------------- pair forces
-def _pair_forces(n_act: ti.i32, kin: KIN, prop: PROP, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                rev_pos: I32_1, pair_out: PAIR_OUT, own: KIN, surf_id: I32_2, prm: F64_1, dt: ti.f64,
-                blk_list: I32_1, block: ti.i32):
+def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off: ti.template(),
+                 nbr_j: ti.template(), nbr_h: ti.template(), rev_pos: ti.template(), pair_out: ti.template(),
+                 own: ti.template(), surf_id: ti.template(), prm: ti.template(), dt: ti.f64,
+                 blk_list: ti.template(), block: ti.i32):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -538,8 +539,9 @@ def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
     return meets
 
 
-def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: F64_2, blk_hot: I32_1, blk_active: I32_1,
-                blk_box: KIN, blk_list: I32_1, stat: F64_1, todo: ti.i32):
+def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(), blk_hot: ti.template(),
+                 blk_active: ti.template(), blk_box: ti.template(), blk_list: ti.template(), stat: ti.template(),
+                 todo: ti.i32):
     """Which blocks of particles take part in this substep: hot ones (marked by the last step: an awake particle in
     them or among their partners; all of them after a rebuild) and those whose bounding box meets a tool's sphere.
     The others are asleep with sleeping partners only and out of every tool's reach, so computing them would
@@ -603,11 +605,12 @@ def fill_rev_holder(n_act: ti.i32, nbr_off: I32_1, rev_pos: I32_1, rev_holder: I
             rev_holder[rev_pos[e]] = i
 
 
-def _step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1,
-         pair_out: PAIR_OUT, surf_id: I32_2, surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF,
-         prm: F64_1, stat: F64_1, partial: F64_2, dt: ti.f64, bulk_damping: ti.f64, block: ti.i32,
-         blk_active: I32_1, blk_list: I32_1, blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1,
-         rev_holder: I32_1) -> ti.f64:
+def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.template(), x_ref: ti.template(),
+          own: ti.template(), rev_off: ti.template(), pair_out: ti.template(), surf_id: ti.template(),
+          surf_h: ti.template(), tools: ti.template(), tool_acc: ti.template(), sdf: ti.template(),
+          prm: ti.template(), stat: ti.template(), partial: ti.template(), dt: ti.f64, bulk_damping: ti.f64,
+          block: ti.i32, blk_active: ti.template(), blk_list: ti.template(), blk_hot: ti.template(),
+          blk_box: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(), rev_holder: ti.template()):
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
     ground and walls, tools), advance it (symplectic Euler), then move the tools.
 
@@ -860,25 +863,40 @@ def _step(n_act: ti.i32, kin: KIN, prop: PROP, flags: I32_1, x_ref: REF, own: KI
         stat[S_DONE] += 1.0
         if stat[S_DISP2] > 0.25 * prm[P_SKIN] * prm[P_SKIN]:
             stat[S_HALT] = 1.0
-    return stat[S_DISP2]
 
 
-def kernel_variant(fn, **constants):
-    """fn as a Taichi kernel compiled with some of this module's constants replaced (Taichi reads module globals
-    when it compiles a kernel): one source for both variants."""
+def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f64, bulk_damping: ti.f64, kin: KIN,
+             prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1, pair_out: PAIR_OUT, surf_id: I32_2,
+             surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF, prm: F64_1, stat: F64_1, partial: F64_2,
+             blk_active: I32_1, blk_list: I32_1, blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1,
+             nbr_h: HIST_1, rev_pos: I32_1, rev_holder: I32_1):
+    """One substep, one launch: the blocks that take part, their pair forces, then everything else and the
+    integration (the loops run one after the other; a launch costs ~20 us of argument setup on the CPU even in a
+    compute graph, more than an idle substep's work)."""
+    _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo)
+    _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list, block)
+    _step(n_act, kin, prop, flags, x_ref, own, rev_off, pair_out, surf_id, surf_h, tools, tool_acc, sdf, prm, stat,
+          partial, dt, bulk_damping, block, blk_active, blk_list, blk_hot, blk_box, nbr_off, nbr_j, rev_holder)
+
+
+def _variant(fn, decorator, **names):
+    """fn under `decorator` (ti.func or ti.kernel) with some of this module's names replaced: Taichi reads the
+    module's globals when it compiles, so one source gives both the threaded and the serial loops."""
     scope = dict(fn.__globals__)
-    scope.update(constants)
+    scope.update(names)
     copy = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
     copy.__annotations__ = fn.__annotations__
-    return ti.kernel(copy)
+    return decorator(copy)
 
 
-mark_blocks = ti.kernel(_mark_blocks)
-pair_forces = ti.kernel(_pair_forces)
-step = ti.kernel(_step)
-mark_blocks_serial = kernel_variant(_mark_blocks, SERIAL_LOOPS=True)
-pair_forces_serial = kernel_variant(_pair_forces, SERIAL_LOOPS=True)
-step_serial = kernel_variant(_step, SERIAL_LOOPS=True)
+def _substep_kernel(serial: bool):
+    funcs = {name: _variant(globals()[name], ti.func, SERIAL_LOOPS=serial)
+             for name in ("_mark_blocks", "_pair_forces", "_step")}
+    return _variant(_substep, ti.kernel, SERIAL_LOOPS=serial, **funcs)
+
+
+substep = _substep_kernel(False)
+substep_serial = _substep_kernel(True)  # every particle loop in the calling thread (CPU)
 
 
 # ----------------------------------------------------------------------------------------------- neighbour build

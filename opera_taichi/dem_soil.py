@@ -10,8 +10,8 @@ table of ~2 n buckets, so memory follows the particle count, not the domain) and
 reorders the particle arrays for memory locality. Verlet lists hold every pair closer than r_i + r_j + D + skin
 once (half lists, found through a half stencil of cells); they are rebuilt only when some particle has moved
 more than skin / 2 (a reduction in the integration kernel) or left the domain, and contact springs are carried
-over at a rebuild. One substep = three kernels (the blocks that take part; pair forces; everything else and the
-integration). The substeps of one rigid step run as one Taichi compute graph, which halts itself after a substep
+over at a rebuild. One substep = one kernel of three passes (the blocks that take part; pair forces; everything
+else and the integration). The substeps of one rigid step run as one Taichi compute graph, which halts itself after a substep
 that needs a rebuild (the host rebuilds and runs the rest), so a rigid step costs one launch from Python; on the
 CPU its tool rows and report are read and written through NumPy views of the arrays, without a copy kernel.
 """
@@ -126,14 +126,12 @@ CHUNK_MAX = 32  # longest run of substeps in one compute graph (longer advances 
 SERIAL_BELOW = 4096
 
 
-def _substep_kernels(serial: bool):
-    if serial:
-        return dem.mark_blocks_serial, dem.pair_forces_serial, dem.step_serial
-    return dem.mark_blocks, dem.pair_forces, dem.step
+def _substep_kernel(serial: bool):
+    return dem.substep_serial if serial else dem.substep
 
 
 def _chunk_graph(count: int, serial: bool):
-    """Compute graph of `count` substeps (begin_chunk, count x (mark_blocks, pair_forces, step), end_advance), built
+    """Compute graph of `count` substeps (begin_chunk, count x substep, end_advance), built
     once per Taichi runtime and count; None if the backend cannot build graphs (then the kernels are launched
     directly). Launching an ndarray kernel from Python costs ~20 us per argument, which would dominate small soils;
     a graph binds the arguments in C++, and one graph per rigid step launches from Python once. serial: the
@@ -148,13 +146,10 @@ def _chunk_graph(count: int, serial: bool):
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
             sym = {name: arg(kind.NDARRAY, name, dtype=dtype, ndim=ndim) for name, (dtype, ndim) in _NDARRAYS.items()}
             sym.update({name: arg(kind.SCALAR, name, dtype) for name, dtype in _SCALARS.items()})
-            mark, pair, step = _substep_kernels(serial)
             builder = ti.graph.GraphBuilder()
             builder.dispatch(dem.begin_chunk, *(sym[a] for a in _BEGIN_ARGS))
             for _ in range(count):
-                builder.dispatch(mark, *(sym[a] for a in _MARK_ARGS))
-                builder.dispatch(pair, *(sym[a] for a in _PAIR_ARGS))
-                builder.dispatch(step, *(sym[a] for a in _STEP_ARGS))
+                builder.dispatch(_substep_kernel(serial), *(sym[a] for a in _SUBSTEP_ARGS))
             builder.dispatch(dem.end_advance, *(sym[a] for a in _END_ARGS))
             _GRAPHS[key] = builder.compile()
         except Exception:  # noqa: BLE001 - any failure here just means direct launches
@@ -171,12 +166,9 @@ _NDARRAYS = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr
 _SCALARS = dict(n_act=ti.i32, dt=ti.f64, bulk_damping=ti.f64, block=ti.i32, skip=ti.i32, todo=ti.i32, first=ti.i32,
                 upload=ti.i32)
 _BEGIN_ARGS = ("first", "upload", "tools_in", "tools", "tool_acc", "stat")
-_MARK_ARGS = ("n_act", "block", "skip", "tools", "blk_hot", "blk_active", "blk_box", "blk_list", "stat", "todo")
-_PAIR_ARGS = ("n_act", "kin", "prop", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "pair_out", "own", "surf_id", "prm",
-              "dt", "blk_list", "block")
-_STEP_ARGS = ("n_act", "kin", "prop", "flags", "x_ref", "own", "rev_off", "pair_out", "surf_id", "surf_h",
-              "tools", "tool_acc", "sdf", "prm", "stat", "partial", "dt", "bulk_damping", "block", "blk_active",
-              "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "rev_holder")
+_SUBSTEP_ARGS = ("n_act", "block", "skip", "todo", "dt", "bulk_damping", "kin", "prop", "flags", "x_ref", "own",
+                 "rev_off", "pair_out", "surf_id", "surf_h", "tools", "tool_acc", "sdf", "prm", "stat", "partial",
+                 "blk_active", "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "rev_holder")
 _END_ARGS = ("tools", "tool_acc", "stat", "report")
 
 
@@ -914,12 +906,9 @@ class DemSoil:
             if graph is not None:
                 graph.run(args)
             else:
-                mark, pair, step = _substep_kernels(serial)
                 dem.begin_chunk(*(args[a] for a in _BEGIN_ARGS))
                 for _ in range(k):
-                    mark(*(args[a] for a in _MARK_ARGS))
-                    pair(*(args[a] for a in _PAIR_ARGS))
-                    step(*(args[a] for a in _STEP_ARGS))
+                    _substep_kernel(serial)(*(args[a] for a in _SUBSTEP_ARGS))
                 dem.end_advance(*(args[a] for a in _END_ARGS))
             args.update(first=0, upload=0)
             report = self._report.to_numpy() if self._report_view is None else self._report_view.copy()
