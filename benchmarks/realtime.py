@@ -1,7 +1,7 @@
 """The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
 
     python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
-                                  [--duration 25]
+                                  [--duration 25] [--repeat 1]
 
 For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
 `--site` adds scenes/zx120_site.yaml (the same dig in a 20 m x 20 m x 1 m bed) at 8 cm. Settling the bed is not
@@ -11,7 +11,9 @@ timed (it is cached after the first run of a size; run the command twice for a c
   the loop), particle-steps per second, and the bucket's mean draft over the drag (8-16 s) against the earthmoving
   equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade)
 
-Report the host: `lscpu | grep 'Model name'` and whether other work shared it.
+`--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
+host's speed drifts by 10% from run to run). Report the host: `lscpu | grep 'Model name'` and whether other work
+shared it.
 """
 from __future__ import annotations
 
@@ -88,20 +90,26 @@ def main() -> int:
     parser.add_argument("--sleep", choices=("both", "on", "off"), default="both")
     parser.add_argument("--arch", default="cpu")
     parser.add_argument("--duration", type=float, default=25.0)
+    parser.add_argument("--repeat", type=int, default=1, help="runs per row: the median RTF and its range")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
     runs = [(ROOT / "scenes" / "zx120_excavation.yaml", float(r)) for r in args.radii.split(",")]
     if args.site:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
-    print("| scene | radius m | sleep | particles | awake (mean) | RTF | M particle-steps/s | draft kN (8-16 s) "
-          "| FEE kN | draft/FEE |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    if args.repeat < 1:
+        parser.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
+    print("| scene | radius m | sleep | particles | awake (mean) | RTF | RTF range | M particle-steps/s "
+          "| draft kN (8-16 s) | FEE kN | draft/FEE |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for path, radius in runs:
         for sleep in sleeps:
-            r = one(path, radius, sleep, args.arch, args.duration)
+            tries = sorted((one(path, radius, sleep, args.arch, args.duration) for _ in range(args.repeat)),
+                           key=lambda row: row["rtf"])
+            r = tries[len(tries) // 2]  # the median run (the upper one of an even count)
+            spread = f"{tries[0]['rtf']:.3f}-{tries[-1]['rtf']:.3f}" if len(tries) > 1 else "-"
             print(f"| {r['scene']} | {radius:g} | {'on' if sleep else 'off'} | {r['particles']:,} | "
-                  f"{r['awake']:,.0f} | {r['rtf']:.3f} | {(r['psps'] or 0) / 1e6:.2f} | {r['draft'] / 1e3:.1f} | "
-                  f"{r['fee'] / 1e3:.1f} | {r['draft'] / r['fee']:.2f} |", flush=True)
+                  f"{r['awake']:,.0f} | {r['rtf']:.3f} | {spread} | {(r['psps'] or 0) / 1e6:.2f} | "
+                  f"{r['draft'] / 1e3:.1f} | {r['fee'] / 1e3:.1f} | {r['draft'] / r['fee']:.2f} |", flush=True)
     return 0
 
 
