@@ -1,0 +1,27 @@
+"""backend.host_view: on the CPU a NumPy view of a Taichi ndarray's own memory (what a kernel writes is read without a
+copy, what the host writes a kernel reads), the route by which every soil step's tool rows go in and its report
+comes out."""
+import numpy as np
+import taichi as ti
+
+from opera_taichi.backend import current_arch, host_view, init_taichi
+
+
+@ti.kernel
+def _double_plus_row(a: ti.types.ndarray(ti.f64, 2)):
+    for i, j in ti.ndrange(a.shape[0], a.shape[1]):
+        a[i, j] = 2.0 * a[i, j] + i
+
+
+def test_a_host_view_shares_the_arrays_memory_both_ways():
+    if current_arch() is None:
+        init_taichi("cpu")
+    arr = ti.ndarray(ti.f64, (4, 3))
+    view = host_view(arr)
+    assert view is not None and view.shape == (4, 3) and not view.flags.owndata
+    view[:] = np.arange(12.0).reshape(4, 3)          # written by the host ...
+    _double_plus_row(arr)                              # ... read and rewritten by a kernel ...
+    expected = 2.0 * np.arange(12.0).reshape(4, 3) + np.arange(4.0)[:, None]
+    assert np.array_equal(view, expected)              # ... seen through the view, no copy
+    assert np.array_equal(arr.to_numpy(), expected)
+    assert host_view(ti.ndarray(ti.i64, 3)) is None    # a type it does not map: the caller copies
