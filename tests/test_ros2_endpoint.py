@@ -26,7 +26,8 @@ def test_ros2_endpoint_round_trip_and_cdr_on_the_wire(tmp_path):
     store = typestore(2)
     endpoint = StandInRos2Endpoint()
     args = ["scenes/zx120_excavation.yaml", "--set", "soil.overrides.radius=0.16", "--set", "motion=null",
-            "--set", "sim.duration=120", "--pace", "fast", "--ros-tcp", f"127.0.0.1:{endpoint.port}"]
+            "--set", "sim.duration=3600", "--pace", "fast", "--ros-tcp", f"127.0.0.1:{endpoint.port}"]
+    # (an hour of simulated time: at fast pace the run must outlast the exchange on any host; it is stopped below)
     proc, out, err = start_run(args, None, tmp_path, "ros2")
     try:
         wait_for(lambda: all(endpoint.messages(t) for t in EXPECTED_NAMES) or proc.poll() is not None, 120,
