@@ -48,8 +48,8 @@ import types
 
 import taichi as ti
 
-# The substep kernels' particle loops run on Taichi's thread pool, or serially in the calling thread (the *_serial
-# variants, CPU only): a parallel loop costs a thread-pool round trip (15-40 us on a 2-core host) even when it has
+# The substep kernel's particle loops run on Taichi's thread pool, or serially in the calling thread (substep_serial,
+# CPU only): a parallel loop costs a thread-pool round trip (15-40 us on a 2-core host) even when it has
 # nothing to do, more than a few hundred awake particles cost to compute; DemSoil picks one per run of substeps.
 SERIAL_LOOPS = False
 MAX_TOOLS = 4
@@ -542,8 +542,9 @@ def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
 def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(), blk_hot: ti.template(),
                  blk_active: ti.template(), blk_box: ti.template(), blk_list: ti.template(), stat: ti.template(),
                  todo: ti.i32):
-    """Which blocks of particles take part in this substep: hot ones (marked by the last step: an awake particle in
-    them or among their partners; all of them after a rebuild) and those whose bounding box meets a tool's sphere.
+    """Which blocks of particles take part in this substep: hot ones (marked by the last step, or by
+    mark_awake_blocks after a rebuild: an awake particle in them or among their partners) and those whose bounding
+    box may meet a tool's SDF grid.
     The others are asleep with sleeping partners only and out of every tool's reach, so computing them would
     change nothing: a sleeping bed costs what its blocks cost to skip, whatever its size. skip = 0: all active.
     blk_list[0] = the number of active blocks, blk_list[1:] their indices (in no fixed order: each block's work
@@ -1296,7 +1297,7 @@ def begin_chunk(first: ti.i32, upload: ti.i32, tools_in: F64_2, tools: F64_2, to
 
 
 @ti.kernel
-def end_advance(tools: F64_2, tool_acc: F64_2, stat: F64_1, report: F64_1):
+def end_chunk(tools: F64_2, tool_acc: F64_2, stat: F64_1, report: F64_1):
     """Everything the caller reads after a run of substeps in one array (one copy to the host): tool rows,
     accumulators, stat. One serial task."""
     ti.loop_config(serialize=True)

@@ -131,7 +131,7 @@ def _substep_kernel(serial: bool):
 
 
 def _chunk_graph(count: int, serial: bool):
-    """Compute graph of `count` substeps (begin_chunk, count x substep, end_advance), built
+    """Compute graph of `count` substeps (begin_chunk, count x substep, end_chunk), built
     once per Taichi runtime and count; None if the backend cannot build graphs (then the kernels are launched
     directly). Launching an ndarray kernel from Python costs ~20 us per argument, which would dominate small soils;
     a graph binds the arguments in C++, and one graph per rigid step launches from Python once. serial: the
@@ -150,7 +150,7 @@ def _chunk_graph(count: int, serial: bool):
             builder.dispatch(dem.begin_chunk, *(sym[a] for a in _BEGIN_ARGS))
             for _ in range(count):
                 builder.dispatch(_substep_kernel(serial), *(sym[a] for a in _SUBSTEP_ARGS))
-            builder.dispatch(dem.end_advance, *(sym[a] for a in _END_ARGS))
+            builder.dispatch(dem.end_chunk, *(sym[a] for a in _END_ARGS))
             _GRAPHS[key] = builder.compile()
         except Exception:  # noqa: BLE001 - any failure here just means direct launches
             _GRAPHS[key] = None
@@ -228,7 +228,7 @@ class DemSoil:
         self._serial_cpu = current_arch() in ("x64", "arm64")  # serial loops for small work (CPU only)
         self._active_slots = 0
         self._tools_in = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))  # the host's tool rows, uploaded
-        self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)  # written by end_advance, read once per run of substeps
+        self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)  # written by end_chunk, read once per run of substeps
         # (zero-copy views of both on the CPU; None on a GPU, where they are copied)
         self._tools_in_view, self._report_view = host_view(self._tools_in), host_view(self._report)
         self._allocate(0)
@@ -867,11 +867,6 @@ class DemSoil:
         return row[dem.T_POS:dem.T_POS + 3].copy(), row[dem.T_ROT:dem.T_ROT + 9].reshape(3, 3).copy()
 
     # ------------------------------------------------------------------------------------------- stepping
-    def _substep(self, h: float, damping: float) -> None:
-        """One soil substep (pair forces; then every other force, integration, tools moved); rebuild the
-        neighbour lists when needed."""
-        self._substeps(1, h, damping)
-
     def _kernel_args(self, h: float, damping: float) -> dict:
         """The substep kernels' arguments by name (the arrays a rebuild swaps included)."""
         return dict(kin=self._kin, prop=self._prop, flags=self._flags, x_ref=self._x_ref, nbr_off=self._nbr_off,
@@ -888,7 +883,7 @@ class DemSoil:
         """`count` substeps, run as compute graphs of up to CHUNK_MAX substeps; the neighbour lists are rebuilt
         after each substep that moved a particle more than half the skin since they were built (the graph halts
         there, the rest runs after the rebuild). first: the advance's first substeps (upload the tool rows if
-        they changed, zero the tool sums). Returns the last report (end_advance's layout)."""
+        they changed, zero the tool sums). Returns the last report (end_chunk's layout)."""
         args = self._kernel_args(h, damping)
         args.update(first=int(first), upload=int(first and self._tools_dirty))
         if args["upload"]:
@@ -909,7 +904,7 @@ class DemSoil:
                 dem.begin_chunk(*(args[a] for a in _BEGIN_ARGS))
                 for _ in range(k):
                     _substep_kernel(serial)(*(args[a] for a in _SUBSTEP_ARGS))
-                dem.end_advance(*(args[a] for a in _END_ARGS))
+                dem.end_chunk(*(args[a] for a in _END_ARGS))
             args.update(first=0, upload=0)
             report = self._report.to_numpy() if self._report_view is None else self._report_view.copy()
             stat = report[dem.MAX_TOOLS * (dem.T_WIDTH + 6):]
