@@ -127,7 +127,8 @@ S_RUN = 5         # 1 while this substep runs (set by mark_blocks), 0 once halte
 S_HALT = 6        # 1: the lists need a rebuild before the next substep
 S_DONE = 7        # substeps done since begin_chunk
 S_ACTIVE = 8      # most particle slots in the listed blocks of one substep since begin_chunk
-N_STAT = 9
+S_THAW = 9        # 1: a frozen particle (DemSoil's frozen prefix) was asked to wake: the host repartitions
+N_STAT = 10
 
 # per-block partial sums (step): tool wrenches 0..6*MAX_TOOLS-1, then these
 PART_LOST_MASS = 6 * MAX_TOOLS
@@ -242,7 +243,7 @@ def cohesion_force(gap, prm: ti.template()):
 def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off: ti.template(),
                  nbr_j: ti.template(), nbr_h: ti.template(), rev_pos: ti.template(), pair_out: ti.template(),
                  own: ti.template(), surf_id: ti.template(), prm: ti.template(), dt: ti.f64,
-                 blk_list: ti.template(), block: ti.i32):
+                 blk_list: ti.template(), block: ti.i32, n_frozen: ti.i32, stat: ti.template()):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -288,6 +289,9 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                     if d_ij.dot(d_ij) < reach_ij * reach_ij:
                         if asleep_j and fast_i:
                             ti.atomic_or(surf_id[j, TOOL_BITS], WAKE_BIT)
+                            if j < n_frozen:  # frozen: not integrated until the host repartitions
+                                stat[S_THAW] = 1.0
+                                stat[S_HALT] = 1.0
                         if asleep_i and v_j.dot(v_j) > wake_v2:
                             ti.atomic_or(surf_id[i, TOOL_BITS], WAKE_BIT)
             dx = x_i - kin[j, 0]
@@ -541,7 +545,7 @@ def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
 
 def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(), blk_hot: ti.template(),
                  blk_active: ti.template(), blk_box: ti.template(), blk_list: ti.template(), stat: ti.template(),
-                 todo: ti.i32):
+                 todo: ti.i32, n_frozen: ti.i32):
     """Which blocks of particles take part in this substep: hot ones (marked by the last step, or by
     mark_awake_blocks after a rebuild: an awake particle in them or among their partners) and those whose bounding
     box may meet a tool's SDF grid.
@@ -551,15 +555,16 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
     is the same whichever thread does it, and the sums are taken in block order).
 
     A halted chunk (S_HALT) or one that has done its `todo` substeps lists no block and clears S_RUN: this
-    substep and its step() do nothing."""
+    substep and its step() do nothing. The blocks wholly inside the frozen prefix (below n_frozen) are not looked at."""
     n_blocks = (n_act + block - 1) // block
+    blk0 = n_frozen // block
     blk_list[0] = 0
     stat[S_RUN] = 1.0
     if stat[S_HALT] != 0.0 or stat[S_DONE] >= todo:
         stat[S_RUN] = 0.0
-        n_blocks = 0
+        n_blocks = blk0
     ti.loop_config(serialize=SERIAL_LOOPS)
-    for b in range(n_blocks):
+    for b in range(blk0, n_blocks):
         active = 1
         if skip != 0 and blk_hot[b] == 0:
             active = 0
@@ -575,15 +580,16 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
 
 
 @ti.kernel
-def mark_awake_blocks(n_act: ti.i32, block: ti.i32, kin: KIN, surf_id: I32_2, prm: F64_1, blk_hot: I32_1,
-                      blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1):
+def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, surf_id: I32_2, prm: F64_1,
+                      blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1):
     """After the particle order or the lists changed (a rebuild): each block's box anew, and hot the blocks that
     hold an awake particle (or one asked to wake) or a partner of one, as step() would have marked them. The
     others are asleep with sleeping partners: computing them would change nothing, so a rebuild does not make the
-    next substep walk the whole bed."""
+    next substep walk the whole bed. The frozen prefix's blocks are never listed (mark_blocks starts after them)."""
     n_blocks = (n_act + block - 1) // block
+    blk0 = n_frozen // block
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
-    for b in range(n_blocks):
+    for b in range(blk0, n_blocks):
         lo = vec3(HUGE)
         hi = vec3(-HUGE)
         for i in range(b * block, ti.min(n_act, (b + 1) * block)):
@@ -592,18 +598,20 @@ def mark_awake_blocks(n_act: ti.i32, block: ti.i32, kin: KIN, surf_id: I32_2, pr
         blk_box[b, 0] = lo
         blk_box[b, 1] = hi
         blk_hot[b] = 0
-    for i in range(n_act):
+    for i in range(blk0 * block, n_act):
         word = surf_id[i, TOOL_BITS]
         if sleep_steps <= 0 or (word >> CALM_SHIFT) < sleep_steps or (word & WAKE_BIT) != 0:
             _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
 
 
 @ti.kernel
-def fill_rev_holder(n_act: ti.i32, nbr_off: I32_1, rev_pos: I32_1, rev_holder: I32_1):
-    """rev_holder[slot] = the particle that holds the pair of each reverse slot."""
-    for i in range(n_act):
+def fill_rev_holder(lo: ti.i32, n_act: ti.i32, nbr_off: I32_1, rev_pos: I32_1, rev_holder: I32_1, scratch: ti.i32):
+    """rev_holder[slot] = the particle that holds the pair of each reverse slot (of the holders lo..n_act)."""
+    for i in range(lo, n_act):
         for e in range(nbr_off[i], nbr_off[i + 1]):
-            rev_holder[rev_pos[e]] = i
+            q = rev_pos[e]
+            if q != scratch:
+                rev_holder[q] = i
 
 
 def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.template(), x_ref: ti.template(),
@@ -611,7 +619,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
           surf_h: ti.template(), tools: ti.template(), tool_acc: ti.template(), sdf: ti.template(),
           prm: ti.template(), stat: ti.template(), partial: ti.template(), dt: ti.f64, bulk_damping: ti.f64,
           block: ti.i32, blk_active: ti.template(), blk_list: ti.template(), blk_hot: ti.template(),
-          blk_box: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(), rev_holder: ti.template()):
+          blk_box: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(), rev_holder: ti.template(),
+          n_frozen: ti.i32):
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
     ground and walls, tools), advance it (symplectic Euler), then move the tools.
 
@@ -654,6 +663,9 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                 if sample_sdf(sdf, tools, t, rot.transpose() @ (x_s - origin))[0] < reach:
                                     woken = True
                     if woken:
+                        if i < n_frozen:  # frozen: not integrated until the host repartitions
+                            stat[S_THAW] = 1.0
+                            stat[S_HALT] = 1.0
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
                         _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
                     x_b = kin[i, 0]
@@ -829,13 +841,14 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         partial[blk, PART_NONFINITE] = nonfinite
     # sums in block order (not atomics in thread order): the tool wrench fed back to the machine is
     # bit-for-bit reproducible. One serial task, so the sums stay in registers.
+    blk0 = n_frozen // block
     if not running:
-        n_blocks = 0
+        n_blocks = blk0
     ti.loop_config(serialize=True)
     for _ in range(1):
         stat[S_ACTIVE] = ti.max(stat[S_ACTIVE], ti.cast(blk_list[0] * block, ti.f64))
         acc = ti.Vector.zero(ti.f64, PART_WIDTH)
-        for blk in range(n_blocks):
+        for blk in range(blk0, n_blocks):
             if blk_active[blk] != 0:  # (a skipped block's row is stale; it would have added zeros)
                 for c in ti.static(range(PART_WIDTH)):
                     acc[c] += partial[blk, c]
@@ -870,14 +883,16 @@ def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f6
              prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1, pair_out: PAIR_OUT, surf_id: I32_2,
              surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF, prm: F64_1, stat: F64_1, partial: F64_2,
              blk_active: I32_1, blk_list: I32_1, blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1,
-             nbr_h: HIST_1, rev_pos: I32_1, rev_holder: I32_1):
+             nbr_h: HIST_1, rev_pos: I32_1, rev_holder: I32_1, n_frozen: ti.i32):
     """One substep, one launch: the blocks that take part, their pair forces, then everything else and the
     integration (the loops run one after the other; a launch costs ~20 us of argument setup on the CPU even in a
     compute graph, more than an idle substep's work)."""
-    _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo)
-    _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list, block)
+    _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo, n_frozen)
+    _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list, block,
+                 n_frozen, stat)
     _step(n_act, kin, prop, flags, x_ref, own, rev_off, pair_out, surf_id, surf_h, tools, tool_acc, sdf, prm, stat,
-          partial, dt, bulk_damping, block, blk_active, blk_list, blk_hot, blk_box, nbr_off, nbr_j, rev_holder)
+          partial, dt, bulk_damping, block, blk_active, blk_list, blk_hot, blk_box, nbr_off, nbr_j, rev_holder,
+          n_frozen)
 
 
 def _variant(fn, decorator, **names):
@@ -944,52 +959,70 @@ def _cell_of(x, prm: ti.template()):
     return c
 
 
+# The particle arrays hold a frozen prefix (DemSoil: particles asleep and far from every tool and from everything
+# awake), then the live particles, then the inactive ones. The hash table has two halves: buckets 0..T-1 (T =
+# mask + 1) for the frozen prefix's cells, T..2T-1 for the live particles', 2T for the inactive. A rebuild of the
+# live part (lo = n_frozen) bins, sorts, gathers and lists only particles lo..n and leaves the prefix, its lists
+# and its half of the table as they are: frozen particles neither move nor change their springs.
 @ti.kernel
-def bin_particles(n: ti.i32, kin: KIN, flags: I32_1, cell: I64_1, bucket: I32_1, counts: I32_1,
-                  prm: F64_1, mask: ti.i32):
-    """Hash each active particle's cell (Morton code, masked: spatially coherent buckets) and count per bucket.
+def bin_particles(lo: ti.i32, n: ti.i32, kin: KIN, flags: I32_1, frozen: I32_1, use_frozen: ti.i32, cell: I64_1,
+                  bucket: I32_1, counts: I32_1, prm: F64_1, mask: ti.i32):
+    """Hash each active particle lo..n's cell (Morton code, masked: spatially coherent buckets) into the frozen or
+    the live half of the table (use_frozen: by frozen[i]; else all live) and count per bucket.
 
-    Inactive particles go to the extra bucket mask + 1, i.e. after every active one.
+    Inactive particles go to the extra bucket 2T, i.e. after every active one.
     """
-    for b in range(counts.shape[0]):
+    half = mask + 1
+    k0 = 0
+    if lo > 0:
+        k0 = half
+    for b in range(k0, 2 * half + 1):
         counts[b] = 0
-    for i in range(n):
-        key = mask + 1
+    for i in range(lo, n):
+        key = 2 * half
         code = ti.i64(-1)
         if flags[i] == 1:
             code = _morton(_cell_of(kin[i, 0], prm))
             key = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+            if use_frozen == 0 or frozen[i] == 0:
+                key += half
         cell[i] = code
         bucket[i] = key
         ti.atomic_add(counts[key], 1)
 
 
 @ti.kernel
-def sort_by_bucket(n: ti.i32, bucket: I32_1, counts: I32_1, starts: I32_1, order: I32_1, mask: ti.i32) -> ti.i32:
-    """Counting sort (serial, so the order inside a bucket is the old order: deterministic).
+def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: I32_1, order: I32_1,
+                   mask: ti.i32) -> ti.i32:
+    """Counting sort of particles lo..n (serial, so the order inside a bucket is the old order: deterministic).
 
-    starts[b]..starts[b+1] are the sorted slots of bucket b; order[sorted slot] = old index.
-    Returns the number of active particles.
+    starts[b]..starts[b+1] are the sorted slots of bucket b; order[sorted slot] = old index. With lo > 0 only the
+    live half of the table is sorted (the frozen prefix keeps its slots). Returns the number of active particles.
     """
-    starts[0] = 0
+    half = mask + 1
+    k0 = 0
+    if lo > 0:
+        k0 = half
     ti.loop_config(serialize=True)
-    for b in range(mask + 2):
-        starts[b + 1] = starts[b] + counts[b]
-        counts[b] = starts[b]
+    for _ in range(1):
+        starts[k0] = lo
+        for b in range(k0, 2 * half + 1):
+            starts[b + 1] = starts[b] + counts[b]
+            counts[b] = starts[b]
     ti.loop_config(serialize=True)
-    for i in range(n):
+    for i in range(lo, n):
         key = bucket[i]
         order[counts[key]] = i
         counts[key] += 1
-    return starts[mask + 1]
+    return starts[2 * half]
 
 
 @ti.kernel
-def gather_particles(n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP, prop_out: PROP,
+def gather_particles(lo: ti.i32, n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP, prop_out: PROP,
                      flags: I32_1, flags_out: I32_1, surf_id: I32_2, surf_id_out: I32_2, surf_h: HIST,
                      surf_h_out: HIST, cell: I64_1, cell_out: I64_1):
-    """Reorder all per-particle state into cell order (memory locality for the pair loop)."""
-    for k in range(n):
+    """Reorder the per-particle state of slots lo..n into cell order (memory locality for the pair loop)."""
+    for k in range(lo, n):
         o = order[k]
         for c in ti.static(range(3)):
             kin_out[k, c] = kin[o, c]
@@ -1002,87 +1035,181 @@ def gather_particles(n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN, prop: PROP
             surf_h_out[k, s] = surf_h[o, s]
 
 
+@ti.kernel
+def mark_frozen(n: ti.i32, n_act: ti.i32, kin: KIN, flags: I32_1, surf_id: I32_2, prm: F64_1, tools: F64_2,
+                margin: ti.f64, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1,
+                frozen: I32_1) -> ti.i32:
+    """Before a full rebuild: frozen[i] = 1 for each particle asleep (no wake request) and farther than `margin`
+    beyond every tool's bounding sphere. Returns how many (thaw_layer then keeps layers around the others)."""
+    sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
+    for i in range(n):
+        f = 0
+        word = surf_id[i, TOOL_BITS]
+        if i < n_act and flags[i] == 1 and sleep_steps > 0 and (word >> CALM_SHIFT) >= sleep_steps and \
+                (word & WAKE_BIT) == 0:
+            f = 1
+            x = kin[i, 0]
+            for t in range(MAX_TOOLS):
+                if tools[t, T_ON] > 0.0:
+                    rot = _tool_rotation(tools, t)
+                    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
+                        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+                    reach = tools[t, T_BS + 3] + margin
+                    d = x - centre
+                    if d.dot(d) <= reach * reach:
+                        f = 0
+        frozen[i] = f
+    count = 0
+    for i in range(n):
+        count += frozen[i]
+    return count
+
+
+@ti.kernel
+def thaw_layer(n_act: ti.i32, frozen: I32_1, frozen_out: I32_1, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1,
+               rev_holder: I32_1) -> ti.i32:
+    """One layer of particles around the unfrozen ones unfrozen too (from frozen into frozen_out, so the result does
+    not depend on the threads' order). Returns how many stay frozen."""
+    for i in range(n_act):
+        f = frozen[i]
+        if f != 0:
+            for e in range(nbr_off[i], nbr_off[i + 1]):
+                if frozen[nbr_j[e]] == 0:
+                    f = 0
+            for q in range(rev_off[i], rev_off[i + 1]):
+                if frozen[rev_holder[q]] == 0:
+                    f = 0
+        frozen_out[i] = f
+    for i in range(n_act):  # (a frozen particle's reverse list lacks the live holders: they thaw it from their side)
+        if frozen[i] == 0:
+            for e in range(nbr_off[i], nbr_off[i + 1]):
+                frozen_out[nbr_j[e]] = 0
+    count = 0
+    for i in range(n_act):
+        count += frozen_out[i]
+    return count
+
+
+@ti.kernel
+def identity_prefix(n_frozen: ti.i32, order: I32_1, order_inv: I32_1):
+    """The frozen prefix keeps its slots in the rebuilds of the live part: old index = new index there."""
+    for k in range(n_frozen):
+        order[k] = k
+        order_inv[k] = k
+
+
+@ti.kernel
+def copy_entries(n_frozen: ti.i32, entries: ti.i32, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1, off_out: I32_1,
+                 j_out: I32_1, h_out: HIST_1):
+    """The frozen prefix's lists (offsets 0..n_frozen, entries 0..entries) into the other list buffers."""
+    for k in range(n_frozen + 1):
+        off_out[k] = nbr_off[k]
+    for e in range(entries):
+        j_out[e] = nbr_j[e]
+        h_out[e] = nbr_h[e]
+
+
+@ti.kernel
+def copy_i32(count: ti.i32, src: I32_1, dst: I32_1):
+    for k in range(count):
+        dst[k] = src[k]
+
+
 FULL_STENCIL = tuple((dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
 
 
 @ti.kernel
-def mark_moved_cells(n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I32_1, x_ref: REF, bucket: I32_1,
+def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I32_1, x_ref: REF, bucket: I32_1,
                      order: I32_1, order_inv: I32_1, moved: I32_1, prm: F64_1, mask: ti.i32):
-    """Between bin/sort and the gather, for a rebuild that keeps the lists of still neighbourhoods: moved[b] = 1
-    for each bucket that holds a cell a listed particle left, entered or moved in since the last build (or left
-    the domain from); order_inv[old index] = new index."""
-    for b in range(mask + 2):
+    """Between bin/sort and the gather of the live part (lo..n), for a rebuild that keeps the lists of still
+    neighbourhoods: moved[b] = 1 for each live bucket that holds a cell a listed particle left, entered or moved in
+    since the last build (or left the domain from); order_inv[old index] = new index."""
+    half = mask + 1
+    for b in range(half, 2 * half + 2):
         moved[b] = 0
-    for k in range(n):
+    for k in range(lo, n):
         order_inv[order[k]] = k
-    for o in range(n):
+    for o in range(lo, n):
         ref = x_ref[o]
         x = kin[o, 0]
         if o >= n_listed:
             if flags[o] == 1:
                 moved[bucket[o]] = 1
         elif flags[o] == 0 or x[0] != ref[0] or x[1] != ref[1] or x[2] != ref[2]:
-            moved[ti.cast(_morton(_cell_of(vec3(ref[0], ref[1], ref[2]), prm)) & ti.cast(mask, ti.i64), ti.i32)] = 1
+            moved[half + ti.cast(_morton(_cell_of(vec3(ref[0], ref[1], ref[2]), prm)) & ti.cast(mask, ti.i64),
+                                 ti.i32)] = 1
             if flags[o] == 1:
                 moved[bucket[o]] = 1
 
 
 @ti.func
 def _still_around(x_i, moved: ti.template(), prm: ti.template(), mask):
-    """Whether no cell of the 27 around x_i's shares a bucket with a cell where anything moved."""
+    """Whether no cell of the 27 around x_i's shares a live bucket with a cell where anything moved (nothing in
+    the frozen prefix moves)."""
     sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
     still = True
     for d in ti.static(FULL_STENCIL):
         code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
-        if moved[ti.cast(code & ti.cast(mask, ti.i64), ti.i32)] != 0:
+        if moved[mask + 1 + ti.cast(code & ti.cast(mask, ti.i64), ti.i32)] != 0:
             still = False
     return still
 
 
 @ti.kernel
-def count_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, nbr_off: I32_1,
-                    prm: F64_1, mask: ti.i32, keep_still: ti.i32, moved: I32_1, order: I32_1, old_off: I32_1,
-                    kept: I32_1) -> ti.i32:
-    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i found through the
-    half stencil (a half list: each pair once, held by one of the two); then the prefix sum (nbr_off[i] is
-    where i's list starts). Returns the entry count.
+def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1,
+                    nbr_off: I32_1, prm: F64_1, mask: ti.i32, keep_still: ti.i32, moved: I32_1, order: I32_1,
+                    old_off: I32_1, kept: I32_1) -> ti.i32:
+    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i (i in lo..n_act) found
+    through the half stencil (a half list: each pair once, held by one of the two); then the prefix sum (nbr_off[i]
+    is where i's list starts; nbr_off[lo] is kept). Returns the entry count.
 
-    keep_still = 1 (mark_moved_cells ran): a particle none of whose 27 cells saw anything move since the last
+    A frozen particle lists frozen partners only; a live one lists the live partners of its half stencil and every
+    frozen partner around it (the pairs between the two are held by the live side, so the frozen lists never
+    change while they stay frozen).
+
+    keep_still = 1 (mark_moved_cells ran): a live particle none of whose 27 cells saw anything move since the last
     build keeps its old list (kept[i] = 1): the same particles at the same places, found in the same order (the
     sort keeps the order within a cell), so the search would give exactly that list. A sleeping bed is then not
     searched again whenever the soil at the tool needs new lists."""
-    nbr_off[0] = 0
-    for i in range(n_act):
+    if lo == 0:
+        nbr_off[0] = 0
+    for i in range(lo, n_act):
         x_i = kin[i, 0]
         r_i = prop[i][0]
         extra = prm[P_COH_D] + prm[P_SKIN]
         count = 0
         kept[i] = 0
-        if keep_still != 0:
+        if keep_still != 0 and i >= n_frozen:
             if _still_around(x_i, moved, prm, mask):
                 kept[i] = 1
                 o_i = order[i]
                 count = old_off[o_i + 1] - old_off[o_i]
         if kept[i] == 0:
-            count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask)
+            if i < n_frozen:
+                count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask, 0, True)
+            else:
+                count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask, mask + 1, True)
+                if n_frozen > 0:
+                    count += _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask, 0, False)
         nbr_off[i + 1] = count
     ti.loop_config(serialize=True)
-    for i in range(n_act):
+    for i in range(lo, n_act):
         nbr_off[i + 1] += nbr_off[i]
     return nbr_off[n_act]
 
 
 @ti.func
 def _count_found(i, x_i, r_i, extra, kin: ti.template(), prop: ti.template(), cell: ti.template(),
-                 starts: ti.template(), prm: ti.template(), mask):
-    """How many particles i's half stencil finds within reach (its list's length)."""
+                 starts: ti.template(), prm: ti.template(), mask, key0, half: ti.template()):
+    """How many particles of one half of the table (buckets key0..) i's stencil finds within reach: the half
+    stencil in its own half (half=True), all 27 cells in the other."""
     count = 0
     sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
-    for d in ti.static(HALF_STENCIL):
+    for d in ti.static(HALF_STENCIL if half else FULL_STENCIL):
         code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
-        b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+        b = key0 + ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
         first = starts[b]
-        if ti.static(d == (0, 0, 0)):
+        if ti.static(half and d == (0, 0, 0)):
             first = ti.max(first, i + 1)  # own cell: each pair once, by its lower index
         for j in range(first, starts[b + 1]):
             if cell[j] == code:  # buckets mix cells: keep only this cell's particles
@@ -1107,16 +1234,16 @@ def _old_history(o_i, o_j, old_off: ti.template(), old_j: ti.template(), old_h: 
 
 
 @ti.kernel
-def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1, order: I32_1,
-                   old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1, nbr_h: HIST_1,
-                   x_ref: REF, prm: F64_1, mask: ti.i32, kept: I32_1, order_inv: I32_1):
-    """Write the half lists counted by count_neighbors, carrying each pair's springs over from the old lists.
+def fill_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1,
+                   order: I32_1, old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1,
+                   nbr_h: HIST_1, x_ref: REF, prm: F64_1, mask: ti.i32, kept: I32_1, order_inv: I32_1):
+    """Write the lists of lo..n_act counted by count_neighbors, carrying each pair's springs over from the old lists.
 
     Particles are already sorted (new index = slot; order[new] = old). Also records the positions the skin
     criterion is measured from. A list kept (count_neighbors) is copied with its partners renumbered
     (order_inv: old -> new index) and the springs the search would have carried over.
     """
-    for i in range(n_act):
+    for i in range(lo, n_act):
         x_i = kin[i, 0]
         r_i = prop[i][0]
         extra = prm[P_COH_D] + prm[P_SKIN]
@@ -1131,9 +1258,15 @@ def fill_neighbors(n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32
                     h = old_h[s]
                 nbr_h[e] = h
                 e += 1
-        else:
+        elif i < n_frozen:
             _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h, nbr_j,
-                        nbr_h, prm, mask)
+                        nbr_h, prm, mask, 0, True)
+        else:
+            e = _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h,
+                            nbr_j, nbr_h, prm, mask, mask + 1, True)
+            if n_frozen > 0:
+                _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h, nbr_j,
+                            nbr_h, prm, mask, 0, False)
         x_ref[i] = vec4(x_i[0], x_i[1], x_i[2], _clearance(x_i, _pit_of(x_i, prm), prm))
 
 
@@ -1148,15 +1281,16 @@ def _touching(x_i, r_i, kin: ti.template(), prop: ti.template(), j):
 @ti.func
 def _fill_found(i, o_i, x_i, r_i, extra, e0, kin: ti.template(), prop: ti.template(), cell: ti.template(),
                 starts: ti.template(), order: ti.template(), old_off: ti.template(), old_j: ti.template(),
-                old_h: ti.template(), nbr_j: ti.template(), nbr_h: ti.template(), prm: ti.template(), mask):
-    """Write i's list from its half stencil, from entry e0 on."""
+                old_h: ti.template(), nbr_j: ti.template(), nbr_h: ti.template(), prm: ti.template(), mask, key0,
+                half: ti.template()):
+    """Write what _count_found counts into i's list from entry e0 on; returns the next entry."""
     e = e0
     sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
-    for d in ti.static(HALF_STENCIL):
+    for d in ti.static(HALF_STENCIL if half else FULL_STENCIL):
         code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
-        b = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+        b = key0 + ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
         first = starts[b]
-        if ti.static(d == (0, 0, 0)):
+        if ti.static(half and d == (0, 0, 0)):
             first = ti.max(first, i + 1)
         for j in range(first, starts[b + 1]):
             if cell[j] == code:
@@ -1171,32 +1305,43 @@ def _fill_found(i, o_i, x_i, r_i, extra, e0, kin: ti.template(), prop: ti.templa
                         h = _old_history(o_i, order[j], old_off, old_j, old_h)
                     nbr_h[e] = h
                     e += 1
+    return e
 
 
 @ti.kernel
-def build_reverse(n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_pos: I32_1):
-    """Reverse lists: each particle j gets a segment rev_off[j]..rev_off[j+1] with one slot per pair held by
-    another particle; rev_pos[e] is the slot of entry e (slots in entry order; serial: deterministic, and
-    cheap next to the neighbour search)."""
-    for i in range(n_act + 1):
+def build_reverse(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1,
+                  rev_pos: I32_1, scratch: ti.i32):
+    """Reverse lists of the holders lo..n_act: each particle j gets a segment rev_off[j]..rev_off[j+1] with one slot
+    per pair held by another particle; rev_pos[e] is the slot of entry e (slots in entry order; serial:
+    deterministic, and cheap next to the neighbour search). A frozen particle is not integrated, so what a live
+    holder puts on it goes to the `scratch` slot, and its segment (frozen holders only) never changes."""
+    if lo == 0:
+        rev_off[0] = 0
+    for i in range(lo + 1, n_act + 1):
         rev_off[i] = 0
     ti.loop_config(serialize=True)
-    for i in range(n_act):
-        for e in range(nbr_off[i], nbr_off[i + 1]):
-            rev_off[nbr_j[e] + 1] += 1
-    ti.loop_config(serialize=True)
-    for i in range(n_act):
-        rev_off[i + 1] += rev_off[i]
-    ti.loop_config(serialize=True)
-    for i in range(n_act):
+    for i in range(lo, n_act):
         for e in range(nbr_off[i], nbr_off[i + 1]):
             j = nbr_j[e]
-            rev_pos[e] = rev_off[j]
-            rev_off[j] += 1
+            if i < n_frozen or j >= n_frozen:
+                rev_off[j + 1] += 1
+    base = rev_off[lo]
     ti.loop_config(serialize=True)
-    for i in range(n_act):  # the fill advanced each start to the next one's: shift back
-        rev_off[n_act - i] = rev_off[n_act - i - 1]
-    rev_off[0] = 0
+    for i in range(lo, n_act):
+        rev_off[i + 1] += rev_off[i]
+    ti.loop_config(serialize=True)
+    for i in range(lo, n_act):
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            j = nbr_j[e]
+            if i < n_frozen or j >= n_frozen:
+                rev_pos[e] = rev_off[j]
+                rev_off[j] += 1
+            else:
+                rev_pos[e] = scratch
+    ti.loop_config(serialize=True)
+    for k in range(n_act - lo):  # the fill advanced each start to the next one's: shift back
+        rev_off[n_act - k] = rev_off[n_act - k - 1]
+    rev_off[lo] = base
 
 
 # ----------------------------------------------------------------------------------------------- diagnostics
@@ -1292,6 +1437,7 @@ def begin_chunk(first: ti.i32, upload: ti.i32, tools_in: F64_2, tools: F64_2, to
             stat[S_SPEED2] = 0.0
             stat[S_NONFINITE] = 0.0
         stat[S_HALT] = 0.0
+        stat[S_THAW] = 0.0
         stat[S_DONE] = 0.0
         stat[S_ACTIVE] = 0.0
 

@@ -38,6 +38,16 @@ MORTON_TABLE_MAX = 1 << 21
 SOLVER_VERSION = 16  # 16: a larger cell hash table (other particle order, other round-off); sleeping blocks skipped
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
+# Frozen soil (soil.sleep): a full rebuild moves the particles asleep, with no awake partner and farther than
+# FREEZE_MARGIN beyond every tool's bounding sphere to the front of the arrays; the rebuilds that the moving soil
+# needs then sort, gather and list only the particles after them. Worth the full rebuilds it costs only in a big
+# bed: below FREEZE_MIN frozen particles nothing is frozen. A tool whose sphere moved FREEZE_MARGIN / 2 since, a
+# frozen particle asked to wake, or new parameters repartition (a full rebuild); with nothing frozen a big bed
+# tries again every FREEZE_RETRY s.
+FREEZE_MIN = 8192
+FREEZE_MARGIN = 0.5        # m, at least; and at least 4 x (r_max + skin + adhesion range)
+FREEZE_RETRY = 0.5         # s
+FREEZE_LAYERS = 6          # layers of particles kept live around each unfrozen one (a moving one wakes its partners)
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
 SLEEP_AFTER = 0.05         # s a particle must stay quiet before it sleeps (soil.sleep)
 SLEEP_SPEED = 0.02         # x sqrt(g R): the quiet speed (what a settled bed counts as at rest)
@@ -164,11 +174,12 @@ _NDARRAYS = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr
                  blk_hot=(ti.i32, 1), blk_active=(ti.i32, 1), blk_box=(dem.vec3, 2), rev_holder=(ti.i32, 1),
                  blk_list=(ti.i32, 1), tools_in=(ti.f64, 2), report=(ti.f64, 1))
 _SCALARS = dict(n_act=ti.i32, dt=ti.f64, bulk_damping=ti.f64, block=ti.i32, skip=ti.i32, todo=ti.i32, first=ti.i32,
-                upload=ti.i32)
+                upload=ti.i32, n_frozen=ti.i32)
 _BEGIN_ARGS = ("first", "upload", "tools_in", "tools", "tool_acc", "stat")
 _SUBSTEP_ARGS = ("n_act", "block", "skip", "todo", "dt", "bulk_damping", "kin", "prop", "flags", "x_ref", "own",
                  "rev_off", "pair_out", "surf_id", "surf_h", "tools", "tool_acc", "sdf", "prm", "stat", "partial",
-                 "blk_active", "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "rev_holder")
+                 "blk_active", "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "rev_holder",
+                 "n_frozen")
 _END_ARGS = ("tools", "tool_acc", "stat", "report")
 
 
@@ -190,6 +201,11 @@ class DemSoil:
         # rebuild (count_neighbors); False does all the work, for the same bits
         self.skip_sleeping_blocks = True
         self.keep_still_lists = True
+        self.freeze_far = True  # False: no frozen prefix (same physics, other particle order and round-off)
+        self.n_frozen = 0
+        self._partition = np.zeros((dem.MAX_TOOLS, 4))  # each tool's on flag and sphere centre at the partition
+        self._partition_time = -math.inf
+        self._repartition_due = False
         self._on_settle = on_settle
         self.r_max = micro.radius * (1.0 + micro.polydispersity)
         self.domain_min, self.domain_max = _check_domain(domain_min, domain_max)
@@ -322,7 +338,11 @@ class DemSoil:
             arr = getattr(self, "_" + name).to_numpy()
             out[name] = arr if size.get(name, n) is None else arr[:size.get(name, n)].copy()
         out["tools_host"] = self._tools_host.copy()
-        out["counters"] = np.array([n, self.n_act, e], dtype=np.int64)  # (rebuilds: a diagnostic, not state)
+        out["counters"] = np.array([n, self.n_act, e, self.n_frozen], dtype=np.int64)  # (rebuilds: a diagnostic)
+        # the frozen prefix: its half of the cell table, and what decides the next partition
+        out["frozen_starts"] = self._starts.to_numpy()[:self._mask + 2].copy() if self.n_frozen else np.zeros(0, np.int32)
+        out["partition"] = np.concatenate([self._partition.ravel(),
+                                           [self._partition_time, float(self._repartition_due)]])
         out["time"] = np.array(self.time, dtype=np.float64)
         out["bed_packing"] = np.array(np.nan if self.bed_packing is None else self.bed_packing)
         return out
@@ -345,6 +365,17 @@ class DemSoil:
             target.from_numpy(full)
         self.n_act, self._entries = n_act, e
         self._lists_built = True  # (the lists of a build, with their reference positions)
+        self.n_frozen = int(state["counters"][3]) if len(state["counters"]) > 3 else 0
+        if "partition" in state:
+            part = np.asarray(state["partition"], dtype=np.float64)
+            self._partition = part[:dem.MAX_TOOLS * 4].reshape(dem.MAX_TOOLS, 4).copy()
+            self._partition_time, self._repartition_due = float(part[-2]), bool(part[-1])
+        if self.n_frozen:
+            starts = self._starts.to_numpy()
+            starts[:self._mask + 2] = state["frozen_starts"]
+            self._starts.from_numpy(starts)
+            self._mirror_frozen()
+        self._rebuilt_from = 0
         self._blocks_changed()
         self.time = float(state["time"])
         packing = float(state["bed_packing"])
@@ -425,10 +456,13 @@ class DemSoil:
         self._order = nd(ti.i32, cap)
         self._order_inv = nd(ti.i32, cap)
         self._kept = nd(ti.i32, cap)
-        self._moved = nd(ti.i32, table + 2)
+        self._moved = nd(ti.i32, 2 * table + 2)   # (two halves: the frozen prefix's cells, the live particles')
         self._lists_built = False
-        self._counts = nd(ti.i32, table + 1)
-        self._starts = nd(ti.i32, table + 2)
+        self._counts = nd(ti.i32, 2 * table + 1)
+        self._starts = nd(ti.i32, 2 * table + 2)
+        self._freeze = nd(ti.i32, cap)
+        self._rebuilt_from = 0
+        self.n_frozen = 0
         self._nbr_off, self._nbr_off2 = (nd(ti.i32, cap + 1) for _ in range(2))
         self._allocate_neighbors(NEIGHBORS_PER_PARTICLE * cap)
         self._nbr_off.fill(0)
@@ -441,7 +475,7 @@ class DemSoil:
         self._nbr_h, self._nbr_h2 = (ti.ndarray(dem.vec6f, entries) for _ in range(2))
         self._rev_pos = ti.ndarray(ti.i32, entries)
         self._rev_holder = ti.ndarray(ti.i32, entries)
-        self._pair_out = ti.ndarray(dem.vec3f, (entries, 2))
+        self._pair_out = ti.ndarray(dem.vec3f, (entries + 1, 2))  # + the scratch slot (build_reverse)
 
     def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
         """Replace every particle (state only; contact history starts empty) and restart the mass budget.
@@ -479,11 +513,11 @@ class DemSoil:
         if k and (not np.all(rad > 0) or rad.max() > self.r_max * (1 + 1e-9)):
             raise ValueError(f"radii must lie in (0, {self.r_max:g}] (the soil's largest radius)")
         st = self.get_state()
-        n, n_act, e = (int(v) for v in st["counters"])
+        n, n_act, e = (int(v) for v in st["counters"][:3])
         if n != n_act:
             self._rebuild()  # drop the particles that left the domain first, so the active ones come first
             st = self.get_state()
-            n, n_act, e = (int(v) for v in st["counters"])
+            n, n_act, e = (int(v) for v in st["counters"][:3])
         prop = st["prop"]
         scale = prop[0, 1] / (self.micro.solid_density * 4.0 / 3.0 * math.pi * prop[0, 0] ** 3) if n else 1.0
         mass = scale * self.micro.solid_density * 4.0 / 3.0 * math.pi * rad ** 3
@@ -505,51 +539,152 @@ class DemSoil:
         """Sort particles by cell, drop inactive ones to the end, rebuild the neighbour lists (history kept).
 
         keep_still: the lists were built by the last rebuild and only the motion since has made this one needed
-        (not new or replaced particles): particles around which nothing moved keep their lists (the same lists,
-        without the search)."""
+        (not new or replaced particles): only the particles after the frozen prefix are rebuilt, and those around
+        which nothing moved keep their lists (the same lists, without the search). Otherwise the whole soil is
+        rebuilt and partitioned anew (the frozen prefix: FREEZE_MIN)."""
         n = self._n
         if n == 0:
             self.n_act = 0
+            self.n_frozen = 0
             return
         self.rebuilds += 1
-        keep = bool(keep_still and self.keep_still_lists and self._lists_built)
-        dem.bin_particles(n, self._kin, self._flags, self._cell, self._bucket, self._counts, self._prm, self._mask)
-        n_listed = self.n_act
-        n_act = dem.sort_by_bucket(n, self._bucket, self._counts, self._starts, self._order, self._mask)
-        if keep:
-            dem.mark_moved_cells(n, n_listed, self._kin, self._flags, self._x_ref, self._bucket, self._order,
-                                 self._order_inv, self._moved, self._prm, self._mask)
-        dem.gather_particles(n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
-                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
-                             self._cell2)
+        if keep_still and self._lists_built:
+            self._rebuild_live(keep=self.keep_still_lists)
+        else:
+            self._rebuild_all()
+        self._lists_built = True
+        self._blocks_changed()
+
+    def _swap_particles(self) -> None:
         self._kin, self._kin2 = self._kin2, self._kin
         self._prop, self._prop2 = self._prop2, self._prop
         self._flags, self._flags2 = self._flags2, self._flags
         self._surf_id, self._surf_id2 = self._surf_id2, self._surf_id
         self._surf_h, self._surf_h2 = self._surf_h2, self._surf_h
         self._cell, self._cell2 = self._cell2, self._cell
-        entries = dem.count_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._nbr_off2,
+
+    def _list_neighbors(self, lo: int, n_act: int, keep: bool) -> None:
+        """Count and fill the lists of particles lo..n_act into the spare list buffers, swap, reverse lists."""
+        nf = self.n_frozen
+        entries = dem.count_neighbors(lo, nf, n_act, self._kin, self._prop, self._cell, self._starts, self._nbr_off2,
                                       self._prm, self._mask, int(keep), self._moved, self._order, self._nbr_off,
                                       self._kept)
         if entries > self._nbr_j2.shape[0]:
-            # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact)
+            # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact), and
+            # keep what the frozen prefix's entries and reverse slots hold
             grown = int(entries * 1.25) + 64
-            self._nbr_j2 = ti.ndarray(ti.i32, grown)
-            self._nbr_h2 = ti.ndarray(dem.vec6f, grown)
-            self._rev_pos = ti.ndarray(ti.i32, grown)
-            self._rev_holder = ti.ndarray(ti.i32, grown)
-            self._pair_out = ti.ndarray(dem.vec3f, (grown, 2))
-        dem.fill_neighbors(n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
+            frozen_entries = int(self._nbr_off[nf]) if lo > 0 else 0
+            frozen_slots = int(self._rev_off[nf]) if lo > 0 else 0
+            nbr_j2, nbr_h2 = ti.ndarray(ti.i32, grown), ti.ndarray(dem.vec6f, grown)
+            rev_pos, rev_holder = ti.ndarray(ti.i32, grown), ti.ndarray(ti.i32, grown)
+            if frozen_entries:
+                dem.copy_entries(nf, frozen_entries, self._nbr_off, self._nbr_j, self._nbr_h, self._nbr_off2, nbr_j2,
+                                 nbr_h2)
+                dem.copy_i32(frozen_entries, self._rev_pos, rev_pos)
+                dem.copy_i32(frozen_slots, self._rev_holder, rev_holder)
+            self._nbr_j2, self._nbr_h2, self._rev_pos, self._rev_holder = nbr_j2, nbr_h2, rev_pos, rev_holder
+            self._pair_out = ti.ndarray(dem.vec3f, (grown + 1, 2))
+        dem.fill_neighbors(lo, nf, n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
                            self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
                            self._prm, self._mask, self._kept, self._order_inv)
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
-        dem.build_reverse(n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_pos)
+        dem.build_reverse(lo, nf, n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_pos, self._scratch)
         self.n_act = int(n_act)
         self._entries = int(entries)
-        self._lists_built = True
-        self._blocks_changed()
+        self._rebuilt_from = lo
+
+    @property
+    def _scratch(self) -> int:
+        return self._pair_out.shape[0] - 1
+
+    def _rebuild_all(self) -> None:
+        n = self._n
+        nf = 0
+        if self.freeze_far and self.sleep and self._lists_built and self.skip_sleeping_blocks and n >= FREEZE_MIN:
+            self._upload_tool_rows()
+            nf = int(dem.mark_frozen(n, self.n_act, self._kin, self._flags, self._surf_id, self._prm, self._tools_in,
+                                     self._freeze_margin(), self._nbr_off, self._nbr_j, self._rev_off, self._rev_holder,
+                                     self._freeze))
+            for _ in range(FREEZE_LAYERS):  # (_kept: scratch until the lists are counted)
+                nf = int(dem.thaw_layer(self.n_act, self._freeze, self._kept, self._nbr_off, self._nbr_j,
+                                        self._rev_off, self._rev_holder))
+                self._freeze, self._kept = self._kept, self._freeze
+            self._partition = self._tool_spheres()
+            self._partition_time = self.time
+        if nf < FREEZE_MIN:
+            nf = 0
+        self._repartition_due = False
+        dem.bin_particles(0, n, self._kin, self._flags, self._freeze, int(nf > 0), self._cell, self._bucket,
+                          self._counts, self._prm, self._mask)
+        n_act = dem.sort_by_bucket(0, n, self._bucket, self._counts, self._starts, self._order, self._mask)
+        dem.gather_particles(0, n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
+                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
+                             self._cell2)
+        self._swap_particles()
+        self.n_frozen = nf
+        self._list_neighbors(0, n_act, keep=False)
+        if nf:
+            self._mirror_frozen()
+
+    def _rebuild_live(self, keep: bool) -> None:
+        n, lo = self._n, self.n_frozen
+        dem.bin_particles(lo, n, self._kin, self._flags, self._freeze, 0, self._cell, self._bucket, self._counts,
+                          self._prm, self._mask)
+        n_listed = self.n_act
+        n_act = dem.sort_by_bucket(lo, n, self._bucket, self._counts, self._starts, self._order, self._mask)
+        if keep:
+            dem.mark_moved_cells(lo, n, n_listed, self._kin, self._flags, self._x_ref, self._bucket, self._order,
+                                 self._order_inv, self._moved, self._prm, self._mask)
+        dem.gather_particles(lo, n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
+                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
+                             self._cell2)
+        self._swap_particles()
+        self._list_neighbors(lo, n_act, keep=keep)
+
+    def _mirror_frozen(self) -> None:
+        """The frozen prefix into the spare particle and list buffers (a rebuild of the live part swaps them in),
+        and its slots mapped to themselves (the live part's rebuilds look its particles up by old index)."""
+        nf = self.n_frozen
+        dem.identity_prefix(nf, self._order, self._order_inv)
+        dem.gather_particles(0, nf, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
+                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
+                             self._cell2)
+        frozen_entries = int(self._nbr_off[nf])
+        if self._nbr_j2.shape[0] < self._nbr_j.shape[0]:
+            self._nbr_j2 = ti.ndarray(ti.i32, self._nbr_j.shape[0])
+            self._nbr_h2 = ti.ndarray(dem.vec6f, self._nbr_j.shape[0])
+        dem.copy_entries(nf, frozen_entries, self._nbr_off, self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2,
+                         self._nbr_h2)
+
+    def _freeze_margin(self) -> float:
+        return max(FREEZE_MARGIN, 4.0 * (self.r_max + self.skin + self.micro.adhesion_range))
+
+    def _tool_spheres(self) -> np.ndarray:
+        """(MAX_TOOLS, 4): each tool's on flag and the world centre of its bounding sphere (host rows)."""
+        out = np.zeros((dem.MAX_TOOLS, 4))
+        for t, row in enumerate(self._tools_host):
+            if row[dem.T_ON] > 0.0:
+                rot = row[dem.T_ROT:dem.T_ROT + 9].reshape(3, 3)
+                out[t, 0] = 1.0
+                out[t, 1:] = row[dem.T_POS:dem.T_POS + 3] + rot @ row[dem.T_BS:dem.T_BS + 3]
+        return out
+
+    def _partition_stale(self) -> bool:
+        """Whether the next substeps need a new partition: the tools moved or switched, new parameters, or (nothing
+        frozen in a big sleeping bed) FREEZE_RETRY has passed."""
+        if not (self.freeze_far and self.sleep and self._n >= FREEZE_MIN and self._lists_built):
+            return self.n_frozen > 0
+        if self._repartition_due:
+            return True
+        if self.n_frozen == 0:
+            return self.time - self._partition_time >= FREEZE_RETRY
+        now = self._tool_spheres()
+        if not np.array_equal(now[:, 0], self._partition[:, 0]):
+            return True
+        moved = np.linalg.norm(now[:, 1:] - self._partition[:, 1:], axis=1)
+        return bool(np.any(moved > 0.5 * self._freeze_margin()))
 
     def _set_prm(self, prm: np.ndarray) -> None:
         """Upload the parameters. Who is asleep depends on them (P_SLEEP_STEPS): every block takes part in the next
@@ -557,15 +692,17 @@ class DemSoil:
         self._prm.from_numpy(prm)
         if self._blk_hot is not None:
             self._blk_hot.fill(1)
+            self._repartition_due = True  # (the frozen prefix is found anew before the next substeps)
 
     def _blocks_changed(self) -> None:
         """After the particle order or the lists changed: the blocks that take part in the next substep are found
         anew from the particles (mark_awake_blocks)."""
         if self.n_act:
-            dem.fill_rev_holder(self.n_act, self._nbr_off, self._rev_pos, self._rev_holder)
-            dem.mark_awake_blocks(self.n_act, dem.reduction_block(self.n_act), self._kin, self._surf_id, self._prm,
-                                  self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j, self._rev_off,
-                                  self._rev_holder)
+            dem.fill_rev_holder(self._rebuilt_from, self.n_act, self._nbr_off, self._rev_pos, self._rev_holder,
+                                self._scratch)
+            dem.mark_awake_blocks(self.n_frozen, self.n_act, dem.reduction_block(self.n_act), self._kin,
+                                  self._surf_id, self._prm, self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j,
+                                  self._rev_off, self._rev_holder)
         else:
             self._blk_hot.fill(1)
 
@@ -877,7 +1014,14 @@ class DemSoil:
                     block=dem.reduction_block(self.n_act), blk_hot=self._blk_hot, blk_active=self._blk_active,
                     blk_box=self._blk_box, rev_holder=self._rev_holder, blk_list=self._blk_list,
                     skip=int(self.skip_sleeping_blocks), tools_in=self._tools_in, report=self._report,
-                    first=0, upload=0, todo=0)
+                    first=0, upload=0, todo=0, n_frozen=self.n_frozen)
+
+    def _upload_tool_rows(self) -> None:
+        """The host's tool rows into tools_in (begin_chunk copies them to the kernels' rows when asked to)."""
+        if self._tools_in_view is not None:
+            self._tools_in_view[:] = self._tools_host
+        else:
+            self._tools_in.from_numpy(self._tools_host)
 
     def _substeps(self, count: int, h: float, damping: float, first: bool = False) -> np.ndarray:
         """`count` substeps, run as compute graphs of up to CHUNK_MAX substeps; the neighbour lists are rebuilt
@@ -887,10 +1031,7 @@ class DemSoil:
         args = self._kernel_args(h, damping)
         args.update(first=int(first), upload=int(first and self._tools_dirty))
         if args["upload"]:
-            if self._tools_in_view is not None:
-                self._tools_in_view[:] = self._tools_host
-            else:
-                self._tools_in.from_numpy(self._tools_host)
+            self._upload_tool_rows()
             self._tools_dirty = False
         left = count
         while True:
@@ -911,7 +1052,7 @@ class DemSoil:
             left -= int(stat[dem.S_DONE])
             self._active_slots = int(stat[dem.S_ACTIVE])
             if stat[dem.S_HALT] != 0.0:
-                self._rebuild(keep_still=True)
+                self._rebuild(keep_still=stat[dem.S_THAW] == 0.0)  # a frozen particle woke: repartition
                 args = self._kernel_args(h, damping)
             if left <= 0:
                 return report
@@ -927,6 +1068,8 @@ class DemSoil:
             raise ValueError(f"duration must be positive, got {duration!r}")
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
         h = duration / n_sub
+        if self._partition_stale():
+            self._rebuild()
         report = self._substeps(n_sub, h, 0.0, first=True)
         self.time += duration
         tools_end = dem.MAX_TOOLS * dem.T_WIDTH

@@ -172,6 +172,11 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    heap by 3.4 deg (31.2 / 28.6 against 33.6 / 33.1 deg), which a higher rolling resistance would take back. A
    denser bed does not help either: poured with a third of the rolling resistance (solid fraction 0.49 against
    0.44-0.45) 2.50 / 2.45 x, poured without it (0.53) 2.50 / 2.91 x; the draft hardens sooner and ends no lower.
+   Two tool laws for the layer under the edge were tried at 4 grains across d in plane strain (a90 d0.3, 1.73 x;
+   a60 delta20, 1.82 x) and left out. No rolling resistance in the pairs of grains of which one touches the tool
+   (the layer along the tool rolls freely): 1.76 / 1.75 x, no change. The tool's contact normal made vertical
+   where it points more than 30 deg below the horizontal (grains under the edge pushed down, not along): 1.55 x,
+   and at any downward normal both the blade and the wall diverged (the normal no longer follows the overlap).
    **Micro friction does not set the strength of a poured bed alone.** Wall at 5 grains across H (spoil cleared), thrust
    over Rankine at 0.2 H / 0.5 H: rolling resistance 0.3 1.15 / 1.65 (solid fraction 0.469), 0.2 1.16 / 1.52
    (0.479), 0.1 0.85 / 1.48 (0.497), 0 0.79 / 0.99 (0.538); particle friction tan 25 deg (rolling resistance
