@@ -256,7 +256,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
     # only the blocks mark_blocks listed: in the others all are asleep with sleeping partners, every pair skipped
     ti.loop_config(serialize=SERIAL_LOOPS)
     for slot in range(blk_list[0] * block):
-        i = blk_list[slot // block + 1] * block + slot % block
+        i = n_frozen + blk_list[slot // block + 1] * block + slot % block
         if i >= n_act:
             continue
         x_i = kin[i, 0]
@@ -511,14 +511,17 @@ def _rotation_from_vector(phi):
 
 # ----------------------------------------------------------------------------------------------- integration
 @ti.func
-def _mark_hot(i, block, blk_hot: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(), rev_off: ti.template(),
-              rev_holder: ti.template()):
-    """Particle i is awake for the next substep: its block and the blocks of all its partners take part in it."""
-    blk_hot[i // block] = 1
+def _mark_hot(i, base, block, blk_hot: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(),
+              rev_off: ti.template(), rev_holder: ti.template()):
+    """Particle i is awake for the next substep: its block and the blocks of all its partners take part in it.
+    Blocks start at `base` (the first particle after the frozen prefix, which is in none)."""
+    blk_hot[(i - base) // block] = 1
     for e in range(nbr_off[i], nbr_off[i + 1]):
-        blk_hot[nbr_j[e] // block] = 1
+        j = nbr_j[e]
+        if j >= base:
+            blk_hot[(j - base) // block] = 1
     for q in range(rev_off[i], rev_off[i + 1]):
-        blk_hot[rev_holder[q] // block] = 1
+        blk_hot[(rev_holder[q] - base) // block] = 1
 
 
 @ti.func
@@ -555,16 +558,15 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
     is the same whichever thread does it, and the sums are taken in block order).
 
     A halted chunk (S_HALT) or one that has done its `todo` substeps lists no block and clears S_RUN: this
-    substep and its step() do nothing. The blocks wholly inside the frozen prefix (below n_frozen) are not looked at."""
-    n_blocks = (n_act + block - 1) // block
-    blk0 = n_frozen // block
+    substep and its step() do nothing. Blocks cover the particles after the frozen prefix (n_frozen on)."""
+    n_blocks = (n_act - n_frozen + block - 1) // block
     blk_list[0] = 0
     stat[S_RUN] = 1.0
     if stat[S_HALT] != 0.0 or stat[S_DONE] >= todo:
         stat[S_RUN] = 0.0
-        n_blocks = blk0
+        n_blocks = 0
     ti.loop_config(serialize=SERIAL_LOOPS)
-    for b in range(blk0, n_blocks):
+    for b in range(n_blocks):
         active = 1
         if skip != 0 and blk_hot[b] == 0:
             active = 0
@@ -585,23 +587,22 @@ def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, 
     """After the particle order or the lists changed (a rebuild): each block's box anew, and hot the blocks that
     hold an awake particle (or one asked to wake) or a partner of one, as step() would have marked them. The
     others are asleep with sleeping partners: computing them would change nothing, so a rebuild does not make the
-    next substep walk the whole bed. The frozen prefix's blocks are never listed (mark_blocks starts after them)."""
-    n_blocks = (n_act + block - 1) // block
-    blk0 = n_frozen // block
+    next substep walk the whole bed. Blocks cover the particles after the frozen prefix (n_frozen on)."""
+    n_blocks = (n_act - n_frozen + block - 1) // block
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
-    for b in range(blk0, n_blocks):
+    for b in range(n_blocks):
         lo = vec3(HUGE)
         hi = vec3(-HUGE)
-        for i in range(b * block, ti.min(n_act, (b + 1) * block)):
+        for i in range(n_frozen + b * block, ti.min(n_act, n_frozen + (b + 1) * block)):
             lo = ti.min(lo, kin[i, 0])
             hi = ti.max(hi, kin[i, 0])
         blk_box[b, 0] = lo
         blk_box[b, 1] = hi
         blk_hot[b] = 0
-    for i in range(blk0 * block, n_act):
+    for i in range(n_frozen, n_act):
         word = surf_id[i, TOOL_BITS]
         if sleep_steps <= 0 or (word >> CALM_SHIFT) < sleep_steps or (word & WAKE_BIT) != 0:
-            _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+            _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
 
 
 @ti.kernel
@@ -634,7 +635,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
     if running:
         stat[S_DISP2] = 0.0
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
-    n_blocks = (n_act + block - 1) // block
+    n_blocks = (n_act - n_frozen + block - 1) // block
     ti.loop_config(serialize=SERIAL_LOOPS)
     for kb in range(blk_list[0]):
         blk = blk_list[kb + 1]
@@ -646,7 +647,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         lost_mass = ti.f64(0.0)
         lost_count = ti.f64(0.0)
         tool_sum = ti.Matrix.zero(ti.f64, MAX_TOOLS, 6)
-        for i in range(blk * block, ti.min(n_act, (blk + 1) * block)):
+        for i in range(n_frozen + blk * block, ti.min(n_act, n_frozen + (blk + 1) * block)):
             if flags[i] == 1:  # (all of 0..n_act are active: a deactivation triggers a rebuild at once)
                 word = surf_id[i, TOOL_BITS]
                 if sleep_steps > 0 and (word >> CALM_SHIFT) >= sleep_steps:
@@ -663,11 +664,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                 if sample_sdf(sdf, tools, t, rot.transpose() @ (x_s - origin))[0] < reach:
                                     woken = True
                     if woken:
-                        if i < n_frozen:  # frozen: not integrated until the host repartitions
-                            stat[S_THAW] = 1.0
-                            stat[S_HALT] = 1.0
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
-                        _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+                        _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
                     x_b = kin[i, 0]
                     box_lo = ti.min(box_lo, x_b)
                     box_hi = ti.max(box_hi, x_b)
@@ -823,7 +821,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                     kin[i, 2] = vec3(0.0)
                             tool_bits = (tool_bits & TOOL_MASK) | (calm << CALM_SHIFT)
                             if calm < sleep_steps:
-                                _mark_hot(i, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+                                _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
                         else:
                             blk_hot[blk] = 1
                     if tool_bits != bits_in:
@@ -841,14 +839,13 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         partial[blk, PART_NONFINITE] = nonfinite
     # sums in block order (not atomics in thread order): the tool wrench fed back to the machine is
     # bit-for-bit reproducible. One serial task, so the sums stay in registers.
-    blk0 = n_frozen // block
     if not running:
-        n_blocks = blk0
+        n_blocks = 0
     ti.loop_config(serialize=True)
     for _ in range(1):
         stat[S_ACTIVE] = ti.max(stat[S_ACTIVE], ti.cast(blk_list[0] * block, ti.f64))
         acc = ti.Vector.zero(ti.f64, PART_WIDTH)
-        for blk in range(blk0, n_blocks):
+        for blk in range(n_blocks):
             if blk_active[blk] != 0:  # (a skipped block's row is stale; it would have added zeros)
                 for c in ti.static(range(PART_WIDTH)):
                     acc[c] += partial[blk, c]
@@ -960,32 +957,34 @@ def _cell_of(x, prm: ti.template()):
 
 
 # The particle arrays hold a frozen prefix (DemSoil: particles asleep and far from every tool and from everything
-# awake), then the live particles, then the inactive ones. The hash table has two halves: buckets 0..T-1 (T =
-# mask + 1) for the frozen prefix's cells, T..2T-1 for the live particles', 2T for the inactive. A rebuild of the
-# live part (lo = n_frozen) bins, sorts, gathers and lists only particles lo..n and leaves the prefix, its lists
-# and its half of the table as they are: frozen particles neither move nor change their springs.
+# awake), then the live particles, then the inactive ones. The hash table has two parts: buckets 0..T-1 (T =
+# mask + 1) for the frozen prefix's cells, T..T+L-1 (L = live_mask + 1 <= T, sized for the live particles) for the
+# live particles', T+L for the inactive. A rebuild of the live part (lo = n_frozen) bins, sorts, gathers and lists
+# only particles lo..n and leaves the prefix, its lists and its part of the table as they are: frozen particles
+# neither move nor change their springs.
 @ti.kernel
 def bin_particles(lo: ti.i32, n: ti.i32, kin: KIN, flags: I32_1, frozen: I32_1, use_frozen: ti.i32, cell: I64_1,
-                  bucket: I32_1, counts: I32_1, prm: F64_1, mask: ti.i32):
+                  bucket: I32_1, counts: I32_1, prm: F64_1, mask: ti.i32, live_mask: ti.i32):
     """Hash each active particle lo..n's cell (Morton code, masked: spatially coherent buckets) into the frozen or
     the live half of the table (use_frozen: by frozen[i]; else all live) and count per bucket.
 
-    Inactive particles go to the extra bucket 2T, i.e. after every active one.
+    Inactive particles go to the extra bucket T + L, i.e. after every active one.
     """
     half = mask + 1
     k0 = 0
     if lo > 0:
         k0 = half
-    for b in range(k0, 2 * half + 1):
+    for b in range(k0, half + live_mask + 2):
         counts[b] = 0
     for i in range(lo, n):
-        key = 2 * half
+        key = half + live_mask + 1
         code = ti.i64(-1)
         if flags[i] == 1:
             code = _morton(_cell_of(kin[i, 0], prm))
-            key = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
-            if use_frozen == 0 or frozen[i] == 0:
-                key += half
+            if use_frozen != 0 and frozen[i] != 0:
+                key = ti.cast(code & ti.cast(mask, ti.i64), ti.i32)
+            else:
+                key = half + ti.cast(code & ti.cast(live_mask, ti.i64), ti.i32)
         cell[i] = code
         bucket[i] = key
         ti.atomic_add(counts[key], 1)
@@ -993,11 +992,11 @@ def bin_particles(lo: ti.i32, n: ti.i32, kin: KIN, flags: I32_1, frozen: I32_1, 
 
 @ti.kernel
 def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: I32_1, order: I32_1,
-                   mask: ti.i32) -> ti.i32:
+                   mask: ti.i32, live_mask: ti.i32) -> ti.i32:
     """Counting sort of particles lo..n (serial, so the order inside a bucket is the old order: deterministic).
 
     starts[b]..starts[b+1] are the sorted slots of bucket b; order[sorted slot] = old index. With lo > 0 only the
-    live half of the table is sorted (the frozen prefix keeps its slots). Returns the number of active particles.
+    live part of the table is sorted (the frozen prefix keeps its slots). Returns the number of active particles.
     """
     half = mask + 1
     k0 = 0
@@ -1006,7 +1005,7 @@ def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: 
     ti.loop_config(serialize=True)
     for _ in range(1):
         starts[k0] = lo
-        for b in range(k0, 2 * half + 1):
+        for b in range(k0, half + live_mask + 2):
             starts[b + 1] = starts[b] + counts[b]
             counts[b] = starts[b]
     ti.loop_config(serialize=True)
@@ -1014,7 +1013,7 @@ def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: 
         key = bucket[i]
         order[counts[key]] = i
         counts[key] += 1
-    return starts[2 * half]
+    return starts[half + live_mask + 1]
 
 
 @ti.kernel
@@ -1091,6 +1090,23 @@ def thaw_layer(n_act: ti.i32, frozen: I32_1, frozen_out: I32_1, nbr_off: I32_1, 
 
 
 @ti.kernel
+def frozen_clearance(n: ti.i32, kin: KIN, frozen: I32_1, tools: F64_2, out: F64_1):
+    """out[t] = how far the nearest frozen particle's centre lies beyond tool t's bounding sphere (HUGE for a tool
+    that is off or when nothing is frozen): how far the tool may move before it could reach one."""
+    for t in range(MAX_TOOLS):
+        out[t] = HUGE
+    for i in range(n):
+        if frozen[i] != 0:
+            x = kin[i, 0]
+            for t in range(MAX_TOOLS):
+                if tools[t, T_ON] > 0.0:
+                    rot = _tool_rotation(tools, t)
+                    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
+                        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+                    ti.atomic_min(out[t], (x - centre).norm() - tools[t, T_BS + 3])
+
+
+@ti.kernel
 def identity_prefix(n_frozen: ti.i32, order: I32_1, order_inv: I32_1):
     """The frozen prefix keeps its slots in the rebuilds of the live part: old index = new index there."""
     for k in range(n_frozen):
@@ -1120,12 +1136,12 @@ FULL_STENCIL = tuple((dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for 
 
 @ti.kernel
 def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I32_1, x_ref: REF, bucket: I32_1,
-                     order: I32_1, order_inv: I32_1, moved: I32_1, prm: F64_1, mask: ti.i32):
+                     order: I32_1, order_inv: I32_1, moved: I32_1, prm: F64_1, mask: ti.i32, live_mask: ti.i32):
     """Between bin/sort and the gather of the live part (lo..n), for a rebuild that keeps the lists of still
     neighbourhoods: moved[b] = 1 for each live bucket that holds a cell a listed particle left, entered or moved in
     since the last build (or left the domain from); order_inv[old index] = new index."""
     half = mask + 1
-    for b in range(half, 2 * half + 2):
+    for b in range(half, half + live_mask + 2):
         moved[b] = 0
     for k in range(lo, n):
         order_inv[order[k]] = k
@@ -1136,29 +1152,29 @@ def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I
             if flags[o] == 1:
                 moved[bucket[o]] = 1
         elif flags[o] == 0 or x[0] != ref[0] or x[1] != ref[1] or x[2] != ref[2]:
-            moved[half + ti.cast(_morton(_cell_of(vec3(ref[0], ref[1], ref[2]), prm)) & ti.cast(mask, ti.i64),
+            moved[half + ti.cast(_morton(_cell_of(vec3(ref[0], ref[1], ref[2]), prm)) & ti.cast(live_mask, ti.i64),
                                  ti.i32)] = 1
             if flags[o] == 1:
                 moved[bucket[o]] = 1
 
 
 @ti.func
-def _still_around(x_i, moved: ti.template(), prm: ti.template(), mask):
+def _still_around(x_i, moved: ti.template(), prm: ti.template(), mask, live_mask):
     """Whether no cell of the 27 around x_i's shares a live bucket with a cell where anything moved (nothing in
     the frozen prefix moves)."""
     sx, sy, sz = _neighbor_bits(_cell_of(x_i, prm))
     still = True
     for d in ti.static(FULL_STENCIL):
         code = sx[d[0] + 1] | sy[d[1] + 1] | sz[d[2] + 1]
-        if moved[mask + 1 + ti.cast(code & ti.cast(mask, ti.i64), ti.i32)] != 0:
+        if moved[mask + 1 + ti.cast(code & ti.cast(live_mask, ti.i64), ti.i32)] != 0:
             still = False
     return still
 
 
 @ti.kernel
 def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1,
-                    nbr_off: I32_1, prm: F64_1, mask: ti.i32, keep_still: ti.i32, moved: I32_1, order: I32_1,
-                    old_off: I32_1, kept: I32_1) -> ti.i32:
+                    nbr_off: I32_1, prm: F64_1, mask: ti.i32, live_mask: ti.i32, keep_still: ti.i32, moved: I32_1,
+                    order: I32_1, old_off: I32_1, kept: I32_1) -> ti.i32:
     """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i (i in lo..n_act) found
     through the half stencil (a half list: each pair once, held by one of the two); then the prefix sum (nbr_off[i]
     is where i's list starts; nbr_off[lo] is kept). Returns the entry count.
@@ -1180,7 +1196,7 @@ def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop:
         count = 0
         kept[i] = 0
         if keep_still != 0 and i >= n_frozen:
-            if _still_around(x_i, moved, prm, mask):
+            if _still_around(x_i, moved, prm, mask, live_mask):
                 kept[i] = 1
                 o_i = order[i]
                 count = old_off[o_i + 1] - old_off[o_i]
@@ -1188,7 +1204,7 @@ def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop:
             if i < n_frozen:
                 count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask, 0, True)
             else:
-                count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask, mask + 1, True)
+                count = _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, live_mask, mask + 1, True)
                 if n_frozen > 0:
                     count += _count_found(i, x_i, r_i, extra, kin, prop, cell, starts, prm, mask, 0, False)
         nbr_off[i + 1] = count
@@ -1236,7 +1252,8 @@ def _old_history(o_i, o_j, old_off: ti.template(), old_j: ti.template(), old_h: 
 @ti.kernel
 def fill_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1,
                    order: I32_1, old_off: I32_1, old_j: I32_1, old_h: HIST_1, nbr_off: I32_1, nbr_j: I32_1,
-                   nbr_h: HIST_1, x_ref: REF, prm: F64_1, mask: ti.i32, kept: I32_1, order_inv: I32_1):
+                   nbr_h: HIST_1, x_ref: REF, prm: F64_1, mask: ti.i32, live_mask: ti.i32, kept: I32_1,
+                   order_inv: I32_1):
     """Write the lists of lo..n_act counted by count_neighbors, carrying each pair's springs over from the old lists.
 
     Particles are already sorted (new index = slot; order[new] = old). Also records the positions the skin
@@ -1263,7 +1280,7 @@ def fill_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop: 
                         nbr_h, prm, mask, 0, True)
         else:
             e = _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h,
-                            nbr_j, nbr_h, prm, mask, mask + 1, True)
+                            nbr_j, nbr_h, prm, live_mask, mask + 1, True)
             if n_frozen > 0:
                 _fill_found(i, o_i, x_i, r_i, extra, e, kin, prop, cell, starts, order, old_off, old_j, old_h, nbr_j,
                             nbr_h, prm, mask, 0, False)

@@ -58,6 +58,6 @@ def host_view(arr) -> np.ndarray | None:
     if not hasattr(prog, "get_ndarray_data_ptr_as_int"):
         return None
     ctype = {ti.f64: ctypes.c_double, ti.f32: ctypes.c_float, ti.i32: ctypes.c_int32}[arr.dtype]
-    shape = tuple(arr.shape)
+    shape = tuple(arr.shape) + tuple(getattr(arr, "element_shape", None) or ())  # (vectors are stored packed)
     buffer = (ctype * int(np.prod(shape))).from_address(prog.get_ndarray_data_ptr_as_int(arr.arr))
     return np.ctypeslib.as_array(buffer).reshape(shape)

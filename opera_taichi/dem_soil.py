@@ -38,15 +38,17 @@ MORTON_TABLE_MAX = 1 << 21
 SOLVER_VERSION = 16  # 16: a larger cell hash table (other particle order, other round-off); sleeping blocks skipped
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
-# Frozen soil (soil.sleep): a full rebuild moves the particles asleep, with no awake partner and farther than
-# FREEZE_MARGIN beyond every tool's bounding sphere to the front of the arrays; the rebuilds that the moving soil
-# needs then sort, gather and list only the particles after them. Worth the full rebuilds it costs only in a big
-# bed: below FREEZE_MIN frozen particles nothing is frozen. A tool whose sphere moved FREEZE_MARGIN / 2 since, a
-# frozen particle asked to wake, or new parameters repartition (a full rebuild); with nothing frozen a big bed
-# tries again every FREEZE_RETRY s.
+# Frozen soil (soil.sleep): a full rebuild moves the particles that are asleep, farther than FREEZE_MARGIN beyond
+# every tool's bounding sphere and more than FREEZE_LAYERS contacts from anything awake to the front of the arrays;
+# the rebuilds that the moving soil needs then sort, gather and list only the particles after them. Worth the full
+# rebuilds it costs only in a big bed: below FREEZE_MIN frozen particles nothing is frozen. A frozen particle asked
+# to wake, a tool's sphere come within FREEZE_MARGIN / 2 of the frozen soil, or new parameters repartition (a full
+# rebuild); with nothing frozen, a big bed tries again every FREEZE_RETRY s, or after FREEZE_SOON once most of
+# what was moving has fallen asleep.
 FREEZE_MIN = 8192
 FREEZE_MARGIN = 0.5        # m, at least; and at least 4 x (r_max + skin + adhesion range)
 FREEZE_RETRY = 0.5         # s
+FREEZE_SOON = 0.05         # s: sooner when the substeps list less than half of what they listed at the last try
 FREEZE_LAYERS = 6          # layers of particles kept live around each unfrozen one (a moving one wakes its partners)
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
 SLEEP_AFTER = 0.05         # s a particle must stay quiet before it sleeps (soil.sleep)
@@ -205,6 +207,8 @@ class DemSoil:
         self.n_frozen = 0
         self._partition = np.zeros((dem.MAX_TOOLS, 4))  # each tool's on flag and sphere centre at the partition
         self._partition_time = -math.inf
+        self._slots_at_try = 0
+        self._clearance = np.full(dem.MAX_TOOLS, np.inf)  # each tool's clearance to the frozen soil at the partition
         self._repartition_due = False
         self._on_settle = on_settle
         self.r_max = micro.radius * (1.0 + micro.polydispersity)
@@ -338,11 +342,15 @@ class DemSoil:
             arr = getattr(self, "_" + name).to_numpy()
             out[name] = arr if size.get(name, n) is None else arr[:size.get(name, n)].copy()
         out["tools_host"] = self._tools_host.copy()
-        out["counters"] = np.array([n, self.n_act, e, self.n_frozen], dtype=np.int64)  # (rebuilds: a diagnostic)
+        out["counters"] = np.array([n, self.n_act, e, self.n_frozen, self._live_mask],  # (rebuilds: a diagnostic)
+                                   dtype=np.int64)
         # the frozen prefix: its half of the cell table, and what decides the next partition
-        out["frozen_starts"] = self._starts.to_numpy()[:self._mask + 2].copy() if self.n_frozen else np.zeros(0, np.int32)
-        out["partition"] = np.concatenate([self._partition.ravel(),
-                                           [self._partition_time, float(self._repartition_due)]])
+        nf = self.n_frozen
+        out["frozen_starts"] = self._starts.to_numpy()[:self._mask + 2].copy() if nf else np.zeros(0, np.int32)
+        out["frozen_cells"] = self._cell.to_numpy()[:nf].copy()
+        out["partition"] = np.concatenate([self._partition.ravel(), self._clearance,
+                                           [self._partition_time, float(self._repartition_due),
+                                            float(self._slots_at_try)]])
         out["time"] = np.array(self.time, dtype=np.float64)
         out["bed_packing"] = np.array(np.nan if self.bed_packing is None else self.bed_packing)
         return out
@@ -366,14 +374,20 @@ class DemSoil:
         self.n_act, self._entries = n_act, e
         self._lists_built = True  # (the lists of a build, with their reference positions)
         self.n_frozen = int(state["counters"][3]) if len(state["counters"]) > 3 else 0
+        self._live_mask = int(state["counters"][4]) if len(state["counters"]) > 4 else self._mask
         if "partition" in state:
             part = np.asarray(state["partition"], dtype=np.float64)
             self._partition = part[:dem.MAX_TOOLS * 4].reshape(dem.MAX_TOOLS, 4).copy()
-            self._partition_time, self._repartition_due = float(part[-2]), bool(part[-1])
+            self._clearance = part[dem.MAX_TOOLS * 4:dem.MAX_TOOLS * 5].copy()
+            self._partition_time, self._repartition_due = float(part[-3]), bool(part[-2])
+            self._slots_at_try = int(part[-1])
         if self.n_frozen:
             starts = self._starts.to_numpy()
             starts[:self._mask + 2] = state["frozen_starts"]
             self._starts.from_numpy(starts)
+            cells = self._cell.to_numpy()
+            cells[:self.n_frozen] = state["frozen_cells"]
+            self._cell.from_numpy(cells)
             self._mirror_frozen()
         self._rebuilt_from = 0
         self._blocks_changed()
@@ -436,6 +450,7 @@ class DemSoil:
             table *= 2
         self._n = n
         self._mask = table - 1
+        self._live_mask = self._mask  # the live particles' part of the table (smaller while a prefix is frozen)
         nd = ti.ndarray
         self._kin, self._kin2 = (nd(dem.vec3, (cap, 3)) for _ in range(2))
         self._prop, self._prop2 = (nd(dem.vec4, cap) for _ in range(2))
@@ -567,8 +582,8 @@ class DemSoil:
         """Count and fill the lists of particles lo..n_act into the spare list buffers, swap, reverse lists."""
         nf = self.n_frozen
         entries = dem.count_neighbors(lo, nf, n_act, self._kin, self._prop, self._cell, self._starts, self._nbr_off2,
-                                      self._prm, self._mask, int(keep), self._moved, self._order, self._nbr_off,
-                                      self._kept)
+                                      self._prm, self._mask, self._live_mask, int(keep), self._moved, self._order,
+                                      self._nbr_off, self._kept)
         if entries > self._nbr_j2.shape[0]:
             # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact), and
             # keep what the frozen prefix's entries and reverse slots hold
@@ -586,7 +601,7 @@ class DemSoil:
             self._pair_out = ti.ndarray(dem.vec3f, (grown + 1, 2))
         dem.fill_neighbors(lo, nf, n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
                            self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
-                           self._prm, self._mask, self._kept, self._order_inv)
+                           self._prm, self._mask, self._live_mask, self._kept, self._order_inv)
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
@@ -611,14 +626,25 @@ class DemSoil:
                 nf = int(dem.thaw_layer(self.n_act, self._freeze, self._kept, self._nbr_off, self._nbr_j,
                                         self._rev_off, self._rev_holder))
                 self._freeze, self._kept = self._kept, self._freeze
+            clearance = ti.ndarray(ti.f64, dem.MAX_TOOLS)
+            dem.frozen_clearance(self.n_act, self._kin, self._freeze, self._tools_in, clearance)
+            self._clearance = clearance.to_numpy()
             self._partition = self._tool_spheres()
             self._partition_time = self.time
+            self._slots_at_try = self._active_slots or self.n_act
         if nf < FREEZE_MIN:
             nf = 0
         self._repartition_due = False
+        self._live_mask = self._mask
+        if nf:  # the live part's table sized for the live particles, as the whole table is for all (_allocate)
+            live_table = 64
+            while live_table < min(MORTON_TABLE_PER_PARTICLE * (n - nf), self._mask + 1):
+                live_table *= 2
+            self._live_mask = live_table - 1
         dem.bin_particles(0, n, self._kin, self._flags, self._freeze, int(nf > 0), self._cell, self._bucket,
-                          self._counts, self._prm, self._mask)
-        n_act = dem.sort_by_bucket(0, n, self._bucket, self._counts, self._starts, self._order, self._mask)
+                          self._counts, self._prm, self._mask, self._live_mask)
+        n_act = dem.sort_by_bucket(0, n, self._bucket, self._counts, self._starts, self._order, self._mask,
+                                   self._live_mask)
         dem.gather_particles(0, n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
                              self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
                              self._cell2)
@@ -631,12 +657,13 @@ class DemSoil:
     def _rebuild_live(self, keep: bool) -> None:
         n, lo = self._n, self.n_frozen
         dem.bin_particles(lo, n, self._kin, self._flags, self._freeze, 0, self._cell, self._bucket, self._counts,
-                          self._prm, self._mask)
+                          self._prm, self._mask, self._live_mask)
         n_listed = self.n_act
-        n_act = dem.sort_by_bucket(lo, n, self._bucket, self._counts, self._starts, self._order, self._mask)
+        n_act = dem.sort_by_bucket(lo, n, self._bucket, self._counts, self._starts, self._order, self._mask,
+                                   self._live_mask)
         if keep:
             dem.mark_moved_cells(lo, n, n_listed, self._kin, self._flags, self._x_ref, self._bucket, self._order,
-                                 self._order_inv, self._moved, self._prm, self._mask)
+                                 self._order_inv, self._moved, self._prm, self._mask, self._live_mask)
         dem.gather_particles(lo, n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
                              self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
                              self._cell2)
@@ -679,12 +706,13 @@ class DemSoil:
         if self._repartition_due:
             return True
         if self.n_frozen == 0:
-            return self.time - self._partition_time >= FREEZE_RETRY
+            waited = self.time - self._partition_time
+            return waited >= FREEZE_RETRY or (waited >= FREEZE_SOON and 2 * self._active_slots < self._slots_at_try)
         now = self._tool_spheres()
         if not np.array_equal(now[:, 0], self._partition[:, 0]):
             return True
         moved = np.linalg.norm(now[:, 1:] - self._partition[:, 1:], axis=1)
-        return bool(np.any(moved > 0.5 * self._freeze_margin()))
+        return bool(np.any(moved > self._clearance - 0.5 * self._freeze_margin()))
 
     def _set_prm(self, prm: np.ndarray) -> None:
         """Upload the parameters. Who is asleep depends on them (P_SLEEP_STEPS): every block takes part in the next
@@ -700,7 +728,7 @@ class DemSoil:
         if self.n_act:
             dem.fill_rev_holder(self._rebuilt_from, self.n_act, self._nbr_off, self._rev_pos, self._rev_holder,
                                 self._scratch)
-            dem.mark_awake_blocks(self.n_frozen, self.n_act, dem.reduction_block(self.n_act), self._kin,
+            dem.mark_awake_blocks(self.n_frozen, self.n_act, dem.reduction_block(self.n_act - self.n_frozen), self._kin,
                                   self._surf_id, self._prm, self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j,
                                   self._rev_off, self._rev_holder)
         else:
@@ -725,6 +753,7 @@ class DemSoil:
                 self._load_state(path)
                 self.bed_packing = self._measure_packing()
                 self._check_settled(settle_time)
+                self._start_asleep()
                 return
             except (OSError, KeyError, ValueError):
                 pass  # unreadable cache entry: settle again
@@ -742,12 +771,25 @@ class DemSoil:
         self._set_state(state)
         self.bed_packing = self._measure_packing()  # measured as a run from the cache measures it
         self._check_settled(settle_time)
+        self._start_asleep()
+
+    def _start_asleep(self) -> None:
+        """With soil.sleep, a settled bed starts asleep: its grains are at rest (velocities zeroed at the end of the
+        settling), so a big bed is not integrated whole for SLEEP_AFTER first and can be frozen at once. A bed that
+        had not come to rest (the warning) then creeps only where a tool or moving soil wakes it."""
+        if not self.sleep or self.n_act == 0:
+            return
+        surf = self._surf_id.to_numpy()
+        word = surf[:self.n_act, dem.TOOL_BITS]
+        surf[:self.n_act, dem.TOOL_BITS] = (word & dem.TOOL_MASK) | (dem.CALM_MAX << dem.CALM_SHIFT)
+        self._surf_id.from_numpy(surf)
+        self._blocks_changed()
 
     def _check_settled(self, settle_time: float) -> None:
         if self.settle_speed > 0.0:
             self.warnings.append(f"soil: the bed did not come to rest in soil.settle_time = {settle_time:g} s (a grain "
-                                 f"still moved at {self.settle_speed:.3g} m/s); it creeps at the start of the run: "
-                                 f"raise soil.settle_time")
+                                 f"still moved at {self.settle_speed:.3g} m/s); it creeps at the start of the run "
+                                 f"(with soil.sleep, where a tool or moving soil wakes it): raise soil.settle_time")
 
     def _pour_lattice(self) -> tuple[np.ndarray, np.ndarray]:
         """Jittered cubic lattice over each pit, tall enough that the settled bed overfills it a little."""
@@ -1011,7 +1053,7 @@ class DemSoil:
                     rev_off=self._rev_off, rev_pos=self._rev_pos, surf_id=self._surf_id, surf_h=self._surf_h,
                     tools=self._tools, tool_acc=self._tool_acc, sdf=self._sdf, prm=self._prm, stat=self._stat,
                     partial=self._partial, n_act=self.n_act, dt=h, bulk_damping=damping,
-                    block=dem.reduction_block(self.n_act), blk_hot=self._blk_hot, blk_active=self._blk_active,
+                    block=dem.reduction_block(self.n_act - self.n_frozen), blk_hot=self._blk_hot, blk_active=self._blk_active,
                     blk_box=self._blk_box, rev_holder=self._rev_holder, blk_list=self._blk_list,
                     skip=int(self.skip_sleeping_blocks), tools_in=self._tools_in, report=self._report,
                     first=0, upload=0, todo=0, n_frozen=self.n_frozen)
@@ -1147,9 +1189,11 @@ class DemSoil:
             empty = np.zeros((0, 3))
             return dict(positions=empty, velocities=empty, angular_velocities=empty, radii=np.zeros(0),
                         masses=np.zeros(0))
-        kin = self._kin.to_numpy()[:n]
-        prop = self._prop.to_numpy()[:n]
-        active = self._flags.to_numpy()[:n] == 1
+        views = [host_view(a) for a in (self._kin, self._prop, self._flags)]  # (a big soil: no full copies)
+        kin, prop, flags = views if all(v is not None for v in views) else \
+            (a.to_numpy() for a in (self._kin, self._prop, self._flags))
+        kin, prop = kin[:n], prop[:n]
+        active = flags[:n] == 1
         return dict(positions=kin[active, 0], velocities=kin[active, 1], angular_velocities=kin[active, 2],
                     radii=prop[active, 0], masses=prop[active, 1])
 

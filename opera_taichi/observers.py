@@ -271,13 +271,31 @@ def hull_halfspaces(mesh) -> np.ndarray:
     return np.hstack([normals, d[:, None]])
 
 
+_HULL_SPHERES: dict[int, tuple] = {}
+
+
+def _hull_sphere(mesh) -> tuple[np.ndarray, float]:
+    """A sphere (link frame) holding the mesh's convex hull: the hull test runs only on the grains inside it."""
+    entry = _HULL_SPHERES.get(id(mesh))
+    if entry is None or entry[0] is not mesh:
+        v = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
+        centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        entry = _HULL_SPHERES[id(mesh)] = (mesh, centre, float(np.linalg.norm(v - centre, axis=1).max()) * (1 + 1e-9))
+    return entry[1], entry[2]
+
+
 def inside_tools(sim, planes: list[np.ndarray], positions: np.ndarray) -> list[np.ndarray]:
     """Per tool (binding order), a mask of the positions inside its convex hull now."""
     out = []
     for i, hull in enumerate(planes):
         p, q, _, _ = sim.tool_pose(i)
-        local = (positions - p) @ quat_to_matrix(q)
-        out.append(np.all(local @ hull[:, :3].T + hull[:, 3] <= 0.0, axis=1))
+        rot = quat_to_matrix(q)
+        centre, radius = _hull_sphere(sim.model.bindings[i].mesh)
+        near = np.nonzero(np.sum((positions - (p + rot @ centre)) ** 2, axis=1) <= radius * radius)[0]
+        mask = np.zeros(len(positions), bool)
+        local = (positions[near] - p) @ rot
+        mask[near] = np.all(local @ hull[:, :3].T + hull[:, 3] <= 0.0, axis=1)
+        out.append(mask)
     return out
 
 

@@ -25,3 +25,16 @@ def test_a_host_view_shares_the_arrays_memory_both_ways():
     assert np.array_equal(view, expected)              # ... seen through the view, no copy
     assert np.array_equal(arr.to_numpy(), expected)
     assert host_view(ti.ndarray(ti.i64, 3)) is None    # a type it does not map: the caller copies
+
+
+def test_a_host_view_of_a_vector_array_has_its_element_axes():
+    """Vector ndarrays (the particles' positions, velocities and spins) are stored element by element: the view
+    adds the element's axis and reads what to_numpy reads (DemSoil.particles of a big soil, without copies)."""
+    if current_arch() is None:
+        init_taichi("cpu")
+    arr = ti.ndarray(ti.types.vector(3, ti.f64), (5, 3))
+    values = np.arange(45.0).reshape(5, 3, 3)
+    arr.from_numpy(values)
+    view = host_view(arr)
+    assert view is not None and view.shape == (5, 3, 3)
+    assert np.array_equal(view, values) and np.array_equal(view, arr.to_numpy())
