@@ -9,6 +9,9 @@ rounding of v += F/m dt alone drifts past that. Contact history (spring elongati
 accurate to the contact law, and pair forces stay exactly antisymmetric because both sides store the exact
 negation of the same rounded value.
 
+Particle order: a frozen prefix (particles 0..n_frozen: asleep, far from tools and from anything awake; see
+DemSoil), the live particles, then the inactive ones; the substep kernels' blocks start at n_frozen.
+
 Data layout (n = particle capacity, E = neighbour-entry capacity):
   kin[n, 3]     vec3 f64   position, velocity, angular velocity
   prop[n]       vec4 f64   radius, mass, 1/mass, mass^(1/4) (pair damping without a per-pair division)

@@ -183,8 +183,15 @@ def start_run(args: list[str], env: dict, tmp: Path, name: str) -> tuple[subproc
     out = tmp / name
     err = tmp / f"{name}.stderr"
     proc = subprocess.Popen([sys.executable, str(REPO / "cli.py"), "run", *args, "--out", str(out)], env=env,
-                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=open(err, "w"), start_new_session=True)
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=open(err, "w"), start_new_session=True,
+                            preexec_fn=default_sigint)
     return proc, out, err
+
+
+def default_sigint() -> None:
+    """In a child before it starts: SIGINT back to its default, so the run stops on it as on a user's Ctrl-C even
+    when the test runner was started with SIGINT ignored (a shell's background job), which children inherit."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 # ---------------------------------------------------------------------------------------------- ROS 2 stand-in
