@@ -528,13 +528,19 @@ def _mark_hot(i, base, block, blk_hot: ti.template(), nbr_off: ti.template(), nb
 
 
 @ti.func
+def _sphere_centre(tools: ti.template(), t, rot):
+    """World centre of tool t's bounding sphere (rot: the tool's rotation)."""
+    return vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
+        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+
+
+@ti.func
 def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
     """Whether a world box may meet tool t's SDF grid (sample_sdf is HUGE outside it, so no grain outside can touch
     or wake): the box against the grid's bounding sphere, then against the grid box along the tool's three axes
     (conservative: a box that passes may still miss the grid, never the other way round)."""
     rot = _tool_rotation(tools, t)
-    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
-        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+    centre = _sphere_centre(tools, t, rot)
     d = ti.max(lo, ti.min(centre, hi)) - centre
     meets = d.dot(d) <= tools[t, T_BS + 3] * tools[t, T_BS + 3]
     if meets:
@@ -1039,8 +1045,7 @@ def gather_particles(lo: ti.i32, n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN
 
 @ti.kernel
 def mark_frozen(n: ti.i32, n_act: ti.i32, kin: KIN, flags: I32_1, surf_id: I32_2, prm: F64_1, tools: F64_2,
-                margin: ti.f64, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1,
-                frozen: I32_1) -> ti.i32:
+                margin: ti.f64, frozen: I32_1) -> ti.i32:
     """Before a full rebuild: frozen[i] = 1 for each particle asleep (no wake request) and farther than `margin`
     beyond every tool's bounding sphere. Returns how many (thaw_layer then keeps layers around the others)."""
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
@@ -1053,11 +1058,8 @@ def mark_frozen(n: ti.i32, n_act: ti.i32, kin: KIN, flags: I32_1, surf_id: I32_2
             x = kin[i, 0]
             for t in range(MAX_TOOLS):
                 if tools[t, T_ON] > 0.0:
-                    rot = _tool_rotation(tools, t)
-                    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
-                        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
                     reach = tools[t, T_BS + 3] + margin
-                    d = x - centre
+                    d = x - _sphere_centre(tools, t, _tool_rotation(tools, t))
                     if d.dot(d) <= reach * reach:
                         f = 0
         frozen[i] = f
@@ -1103,9 +1105,7 @@ def frozen_clearance(n: ti.i32, kin: KIN, frozen: I32_1, tools: F64_2, out: F64_
             x = kin[i, 0]
             for t in range(MAX_TOOLS):
                 if tools[t, T_ON] > 0.0:
-                    rot = _tool_rotation(tools, t)
-                    centre = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2]) + \
-                        rot @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])
+                    centre = _sphere_centre(tools, t, _tool_rotation(tools, t))
                     ti.atomic_min(out[t], (x - centre).norm() - tools[t, T_BS + 3])
 
 

@@ -620,8 +620,7 @@ class DemSoil:
         if self.freeze_far and self.sleep and self._lists_built and self.skip_sleeping_blocks and n >= FREEZE_MIN:
             self._upload_tool_rows()
             nf = int(dem.mark_frozen(n, self.n_act, self._kin, self._flags, self._surf_id, self._prm, self._tools_in,
-                                     self._freeze_margin(), self._nbr_off, self._nbr_j, self._rev_off, self._rev_holder,
-                                     self._freeze))
+                                     self._freeze_margin(), self._freeze))
             for _ in range(FREEZE_LAYERS):  # (_kept: scratch until the lists are counted)
                 nf = int(dem.thaw_layer(self.n_act, self._freeze, self._kept, self._nbr_off, self._nbr_j,
                                         self._rev_off, self._rev_holder))
