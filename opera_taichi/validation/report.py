@@ -177,6 +177,14 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    (the layer along the tool rolls freely): 1.76 / 1.75 x, no change. The tool's contact normal made vertical
    where it points more than 30 deg below the horizontal (grains under the edge pushed down, not along): 1.55 x,
    and at any downward normal both the blade and the wall diverged (the normal no longer follows the overlap).
+   At 4 grains across (blade in plane strain, d 0.3; wall at 4 across H; one run each, `validate-physics
+   blade_cut|passive_wall --resolution 4` with the mapping's rolling resistance patched) no single rolling
+   resistance passes the blade, the wall and the heaps. Draft / FEE a90, a60 delta20; wall / Rankine: 0 -> 1.05,
+   1.17; 0.74 (the wall fails); 0.05 -> 1.25, 1.33 (a60 fails); 0.84; 0.1 -> 1.37; 0.92; 0.15 -> 1.53; 0.85; 0.3
+   (the mapping) -> 1.73, 1.82; 1.18, while the sand heap needs 0.3 (above). The draft is not rate-bound (1.83 x
+   at 0.05 m/s against 1.73 x at 0.1). The spoil-clearing plane carries a little of it: lowered from R/2 above
+   the surface to the surface and to R/2 below (the settled bed's solid fraction is half the bulk's 0.9 R below
+   the surface, its highest grain centre 0.47 R below) the a90 draft read 1.64 and 1.55 x.
    **Micro friction does not set the strength of a poured bed alone.** Wall at 5 grains across H (spoil cleared), thrust
    over Rankine at 0.2 H / 0.5 H: rolling resistance 0.3 1.15 / 1.65 (solid fraction 0.469), 0.2 1.16 / 1.52
    (0.479), 0.1 0.85 / 1.48 (0.497), 0 0.79 / 0.99 (0.538); particle friction tan 25 deg (rolling resistance
