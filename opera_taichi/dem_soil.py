@@ -727,9 +727,9 @@ class DemSoil:
         if self.n_act:
             dem.fill_rev_holder(self._rebuilt_from, self.n_act, self._nbr_off, self._rev_pos, self._rev_holder,
                                 self._scratch)
-            dem.mark_awake_blocks(self.n_frozen, self.n_act, dem.reduction_block(self.n_act - self.n_frozen), self._kin,
-                                  self._surf_id, self._prm, self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j,
-                                  self._rev_off, self._rev_holder)
+            dem.mark_awake_blocks(self.n_frozen, self.n_act, self._block, self._kin, self._surf_id, self._prm,
+                                  self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j, self._rev_off,
+                                  self._rev_holder)
         else:
             self._blk_hot.fill(1)
 
@@ -1052,7 +1052,7 @@ class DemSoil:
                     rev_off=self._rev_off, rev_pos=self._rev_pos, surf_id=self._surf_id, surf_h=self._surf_h,
                     tools=self._tools, tool_acc=self._tool_acc, sdf=self._sdf, prm=self._prm, stat=self._stat,
                     partial=self._partial, n_act=self.n_act, dt=h, bulk_damping=damping,
-                    block=dem.reduction_block(self.n_act - self.n_frozen), blk_hot=self._blk_hot, blk_active=self._blk_active,
+                    block=self._block, blk_hot=self._blk_hot, blk_active=self._blk_active,
                     blk_box=self._blk_box, rev_holder=self._rev_holder, blk_list=self._blk_list,
                     skip=int(self.skip_sleeping_blocks), tools_in=self._tools_in, report=self._report,
                     first=0, upload=0, todo=0, n_frozen=self.n_frozen)
@@ -1146,6 +1146,11 @@ class DemSoil:
     @property
     def n_particles(self) -> int:
         return self.n_act
+
+    @property
+    def _block(self) -> int:
+        """Particles per block of the substep kernels: blocks cover the live particles (after the frozen prefix)."""
+        return dem.reduction_block(self.n_act - self.n_frozen)
 
     @property
     def n_sleeping(self) -> int:
