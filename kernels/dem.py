@@ -38,6 +38,9 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
   tools[MAX_TOOLS, T_WIDTH] f64   SDF grid placement and the current kinematic pose of each tool
   tool_acc[MAX_TOOLS, 6]    f64   force and torque (about the link origin) the soil puts on each tool
   sdf[total]    vec4 f32   all tool SDF grids back to back: distance, unit gradient (link frame)
+  tool_gap[n]   f64        the tools' summed T_TRAVEL up to which no tool can reach the particle (asleep: where it
+                is; awake: within skin/2 of x_ref, the lists' bound), so it skips the SDF test until then (-HUGE:
+                test at the next substep; reset by each rebuild and whenever it falls asleep or wakes)
   partial[rows, PART_WIDTH] f64   per-block sums, added up in block order (deterministic): the step kernel's
                 blocks (reduction_block) and the diagnostics' (BLOCK)
 
@@ -66,13 +69,13 @@ CALM_SHIFT = 8
 CALM_MAX = (1 << 22) - 1
 SURF_ID_WIDTH = WALL_SLOTS + 1
 BLOCK = 64  # particles per reduction block: sums per block, then added in block order
-# The step kernel's blocks: Taichi's CPU backend cuts a parallel loop into one chunk per thread of at least 512
-# iterations, so fewer than 1024 blocks leave the second thread with less (at 50k particles in blocks of 64, 35%
-# of the work; below 32k particles, none). Blocks are sized for about STEP_BLOCKS of them, whatever the thread
-# count, so results do not depend on the machine; at least MIN_STEP_BLOCK particles each, so soils below about
-# 16k particles stay on one thread: on the 3.5k-particle excavation a second thread (blocks of 4, 868 of them)
-# made the step kernel faster at best (673 against 744 us) but slower in the median (868 against 811 us).
+# The step kernel's blocks. Taichi 1.7's CPU thread pool hands out a parallel loop in tasks of 512 iterations
+# whatever the loop's block_dim (measured: with 560 iterations one thread ran 0-511, the other 512-559), so the step
+# loop gives each block STEP_SPREAD iterations, all but one empty: a task is then 32 blocks. Blocks are sized for
+# about STEP_BLOCKS of them, whatever the thread count, so results do not depend on the machine; at least
+# MIN_STEP_BLOCK particles each (smaller blocks list fewer sleeping particles but cost more to sum).
 STEP_BLOCKS = 2048
+STEP_SPREAD = 16
 MIN_STEP_BLOCK = 16
 
 
@@ -142,7 +145,13 @@ PART_WIDTH = PART_LOST_MASS + 3
 # tools row layout
 T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2, 3, 4, 5, 8, 9, 12, 21, 24
 T_BS = 27         # bounding sphere of the SDF grid (link-frame centre, radius): no contact outside it
+T_TRAVEL = 31     # how far, at most, a point near the tool has moved in the tool's frame since the start (m; tool_gap)
 T_WIDTH = 32
+# A sleeping particle's tool clearance (tool_gap) is trusted while the tool has travelled less than it: within
+# CLEAR_MARGIN x the bounding radius of the sphere, the motion is bounded by the translation and the rotation at
+# that lever; the trilinear SDF of a distance field changes by at most sqrt(3) per metre (each partial derivative
+# is an average of grid differences of at most 1), less two grid spacings for the distance transform inside bodies.
+CLEAR_MARGIN = 0.25
 
 FACE_GROUND = 4   # face ids: 0-3 domain walls (x-, x+, y-, y+), 4 ground top, 5 + 5k + f pit k faces
 FACES_PER_PIT = 5
@@ -150,6 +159,7 @@ HUGE = 1e300
 SQRT_HALF = 0.7071067811865476
 SQRT_FIFTH = 0.4472135954999579
 SQRT_TWO_FIFTHS = 0.6324555320336759
+SQRT_THREE = 1.7320508075688772
 
 vec3 = ti.types.vector(3, ti.f64)
 vec4 = ti.types.vector(4, ti.f64)
@@ -555,6 +565,31 @@ def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
     return meets
 
 
+@ti.func
+def _tool_sample(sdf: ti.template(), tools: ti.template(), t, x, reach):
+    """Tool t's SDF sample at world point x (as sample_sdf: distance HUGE where no contact can be) and a bound of how
+    far the tool may travel (T_TRAVEL) before the distance could fall below `reach`: the distance to the bounding
+    sphere from outside it, else to the SDF grid's box, else the margin over sqrt(3) less two grid spacings; capped
+    at CLEAR_MARGIN x the sphere's radius (beyond which T_TRAVEL's lever no longer bounds the motion)."""
+    rot = _tool_rotation(tools, t)
+    r_bs = tools[t, T_BS + 3]
+    rho = (x - _sphere_centre(tools, t, rot)).norm()
+    clear = rho - r_bs
+    sample = vec4(HUGE, 0.0, 0.0, 0.0)
+    if rho <= r_bs * (1.0 + CLEAR_MARGIN):
+        origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
+        p_local = rot.transpose() @ (x - origin)
+        h = tools[t, T_H]
+        lo = vec3(tools[t, T_ORG], tools[t, T_ORG + 1], tools[t, T_ORG + 2])
+        hi = lo + h * (vec3(tools[t, T_NX], tools[t, T_NY], tools[t, T_NZ]) - 1.0)
+        clear = ti.max(ti.max(lo - p_local, p_local - hi), 0.0).norm()
+        if clear <= 0.0:
+            sample = sample_sdf(sdf, tools, t, p_local)
+            clear = ti.max((sample[0] - reach - 2.0 * h) / SQRT_THREE, 0.0)
+        clear = ti.min(clear, CLEAR_MARGIN * r_bs)
+    return sample, clear
+
+
 def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(), blk_hot: ti.template(),
                  blk_active: ti.template(), blk_box: ti.template(), blk_list: ti.template(), stat: ti.template(),
                  todo: ti.i32, n_frozen: ti.i32):
@@ -592,7 +627,8 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
 
 @ti.kernel
 def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, surf_id: I32_2, prm: F64_1,
-                      blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1):
+                      blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1,
+                      tool_gap: F64_1):
     """After the particle order or the lists changed (a rebuild): each block's box anew, and hot the blocks that
     hold an awake particle (or one asked to wake) or a partner of one, as step() would have marked them. The
     others are asleep with sleeping partners: computing them would change nothing, so a rebuild does not make the
@@ -609,6 +645,7 @@ def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, 
         blk_box[b, 1] = hi
         blk_hot[b] = 0
     for i in range(n_frozen, n_act):
+        tool_gap[i] = -HUGE  # (another particle may sit in this slot now)
         word = surf_id[i, TOOL_BITS]
         if sleep_steps <= 0 or (word >> CALM_SHIFT) < sleep_steps or (word & WAKE_BIT) != 0:
             _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
@@ -630,7 +667,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
           prm: ti.template(), stat: ti.template(), partial: ti.template(), dt: ti.f64, bulk_damping: ti.f64,
           block: ti.i32, blk_active: ti.template(), blk_list: ti.template(), blk_hot: ti.template(),
           blk_box: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(), rev_holder: ti.template(),
-          n_frozen: ti.i32):
+          n_frozen: ti.i32, tool_gap: ti.template(), skip: ti.i32):
     """After pair_forces: sum each particle's forces (own pairs, the pairs listed by its neighbours, gravity,
     ground and walls, tools), advance it (symplectic Euler), then move the tools.
 
@@ -645,9 +682,20 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         stat[S_DISP2] = 0.0
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     n_blocks = (n_act - n_frozen + block - 1) // block
+    # Taichi's CPU thread pool hands out a parallel loop in tasks of 512 iterations (whatever its block_dim): over
+    # the listed blocks alone, a few hundred of them would make one task for one thread. Each block takes
+    # STEP_SPREAD iterations (all but the first skip), so a task is 512 / STEP_SPREAD blocks.
+    spread = ti.static(1 if SERIAL_LOOPS else STEP_SPREAD)
     ti.loop_config(serialize=SERIAL_LOOPS)
-    for kb in range(blk_list[0]):
+    for kb_spread in range(blk_list[0] * spread):
+        if kb_spread % spread != 0:
+            continue
+        kb = kb_spread // spread
         blk = blk_list[kb + 1]
+        travel = ti.f64(0.0)  # summed over the tools, which a particle's tool_gap is compared with
+        for t in range(MAX_TOOLS):
+            if tools[t, T_ON] > 0.0:
+                travel += tools[t, T_TRAVEL]
         box_lo = vec3(HUGE)
         box_hi = vec3(-HUGE)
         disp2_max = ti.f64(0.0)
@@ -663,17 +711,19 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     # asleep: no forces, no integration; wake on a neighbour's request or a tool within r + skin,
                     # integrated again from the next substep (its pairs are evaluated again from then on)
                     woken = (word & WAKE_BIT) != 0
-                    if not woken:
+                    if not woken and (skip == 0 or not travel < tool_gap[i]):  # (the test is due; NaN: test)
                         x_s = kin[i, 0]
                         reach = prop[i][0] + prm[P_SKIN] + prm[P_ADH_D]
+                        clear = ti.f64(HUGE)
                         for t in range(MAX_TOOLS):
                             if tools[t, T_ON] > 0.0:
-                                origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
-                                rot = _tool_rotation(tools, t)
-                                if sample_sdf(sdf, tools, t, rot.transpose() @ (x_s - origin))[0] < reach:
-                                    woken = True
+                                sample, gap_t = _tool_sample(sdf, tools, t, x_s, reach)
+                                woken = woken or sample[0] < reach
+                                clear = ti.min(clear, gap_t)
+                        tool_gap[i] = travel + clear
                     if woken:
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
+                        tool_gap[i] = -HUGE  # (the sleeping particle's gap assumed it would not move)
                         _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
                     x_b = kin[i, 0]
                     box_lo = ti.min(box_lo, x_b)
@@ -747,16 +797,23 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                 ids[s] = -1
                             surf_id[i, s] = ids[s]
                     # kinematic tools: SDF in the link frame, the reaction summed per tool
+                    # (tool_gap: no tool can reach a particle that stays within skin / 2 of x_ref, the lists' bound,
+                    # before the tools have travelled that far: no sample, as if it were far)
                     bits_in = surf_id[i, TOOL_BITS]
                     tool_bits = bits_in
+                    due = skip == 0 or not travel < tool_gap[i]
+                    clear = ti.f64(HUGE)
                     for t in range(MAX_TOOLS):
                         if tools[t, T_ON] > 0.0:
-                            rot = _tool_rotation(tools, t)
-                            origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
-                            sample = sample_sdf(sdf, tools, t, rot.transpose() @ (x - origin))
                             hit = False
+                            sample = vec4(HUGE, 0.0, 0.0, 0.0)
+                            if due:
+                                sample, gap_t = _tool_sample(sdf, tools, t, x, r + prm[P_ADH_D])
+                                clear = ti.min(clear, gap_t)
                             # contact (gap < 0), or within the adhesion band beyond it (P_ADH_D: 0 without adhesion)
                             if sample[0] < r + prm[P_ADH_D]:
+                                rot = _tool_rotation(tools, t)
+                                origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
                                 g_world = rot @ vec3(sample[1], sample[2], sample[3])
                                 g_norm = g_world.norm()
                                 if g_norm > 1e-12:
@@ -793,6 +850,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                             if not hit and ((tool_bits >> t) & 1) == 1:
                                 surf_h[i, WALL_SLOTS + t] = vec6f(0.0)
                                 tool_bits &= ~(1 << t)
+                    if due:
+                        tool_gap[i] = travel + clear - (0.5 * prm[P_SKIN] + (x - vec3(ref[0], ref[1], ref[2])).norm())
                     if x[2] > prm[P_DMAX + 2]:
                         buried = True
                     if buried:
@@ -828,6 +887,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                 if calm >= sleep_steps:  # falls asleep at rest
                                     kin[i, 1] = vec3(0.0)
                                     kin[i, 2] = vec3(0.0)
+                                    tool_gap[i] = -HUGE
                             tool_bits = (tool_bits & TOOL_MASK) | (calm << CALM_SHIFT)
                             if calm < sleep_steps:
                                 _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
@@ -875,7 +935,13 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
             ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
             for c in ti.static(range(3)):
                 tools[t, T_POS + c] += vel[c] * dt
-            rot = _rotation_from_vector(ang * dt) @ _tool_rotation(tools, t)
+            rot_old = _tool_rotation(tools, t)
+            # a point within (1 + 2 CLEAR_MARGIN) r_bs of the sphere's centre moves in the tool's frame by at most the
+            # translation plus the rotation angle times its lever about the link origin
+            lever = (rot_old @ vec3(tools[t, T_BS], tools[t, T_BS + 1], tools[t, T_BS + 2])).norm() + \
+                (1.0 + 2.0 * CLEAR_MARGIN) * tools[t, T_BS + 3]
+            tools[t, T_TRAVEL] += (vel.norm() + ang.norm() * lever) * dt
+            rot = _rotation_from_vector(ang * dt) @ rot_old
             for a in ti.static(range(3)):
                 for b in ti.static(range(3)):
                     tools[t, T_ROT + 3 * a + b] = rot[a, b]
@@ -889,7 +955,7 @@ def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f6
              prop: PROP, flags: I32_1, x_ref: REF, own: KIN, rev_off: I32_1, pair_out: PAIR_OUT, surf_id: I32_2,
              surf_h: HIST, tools: F64_2, tool_acc: F64_2, sdf: SDF, prm: F64_1, stat: F64_1, partial: F64_2,
              blk_active: I32_1, blk_list: I32_1, blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1,
-             nbr_h: HIST_1, rev_pos: I32_1, rev_holder: I32_1, n_frozen: ti.i32):
+             nbr_h: HIST_1, rev_pos: I32_1, rev_holder: I32_1, n_frozen: ti.i32, tool_gap: F64_1):
     """One substep, one launch: the blocks that take part, their pair forces, then everything else and the
     integration (the loops run one after the other; a launch costs ~20 us of argument setup on the CPU even in a
     compute graph, more than an idle substep's work)."""
@@ -898,7 +964,7 @@ def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f6
                  n_frozen, stat)
     _step(n_act, kin, prop, flags, x_ref, own, rev_off, pair_out, surf_id, surf_h, tools, tool_acc, sdf, prm, stat,
           partial, dt, bulk_damping, block, blk_active, blk_list, blk_hot, blk_box, nbr_off, nbr_j, rev_holder,
-          n_frozen)
+          n_frozen, tool_gap, skip)
 
 
 def _variant(fn, decorator, **names):
@@ -1450,8 +1516,20 @@ def begin_chunk(first: ti.i32, upload: ti.i32, tools_in: F64_2, tools: F64_2, to
     for _ in range(1):
         if first != 0:
             if upload != 0:
-                for t, c in ti.ndrange(MAX_TOOLS, T_WIDTH):
-                    tools[t, c] = tools_in[t, c]
+                for t in range(MAX_TOOLS):
+                    # the jump from the pose the substeps reached to the one set is travel too (T_TRAVEL's bound:
+                    # the sphere centre's move plus the rotation's, at most its Frobenius norm, times the lever)
+                    travel = tools_in[t, T_TRAVEL]
+                    if tools[t, T_ON] > 0.0 and tools_in[t, T_ON] > 0.0:
+                        rot_old = _tool_rotation(tools, t)
+                        rot_new = _tool_rotation(tools_in, t)
+                        shift = _sphere_centre(tools_in, t, rot_new) - _sphere_centre(tools, t, rot_old)
+                        turn = (rot_new - rot_old).norm()
+                        travel = tools[t, T_TRAVEL] + shift.norm() + turn * (1.0 + 2.0 * CLEAR_MARGIN) * \
+                            tools_in[t, T_BS + 3]
+                    for c in range(T_WIDTH):
+                        tools[t, c] = tools_in[t, c]
+                    tools[t, T_TRAVEL] = travel
             for t, c in ti.ndrange(MAX_TOOLS, 6):
                 tool_acc[t, c] = 0.0
             stat[S_SPEED2] = 0.0

@@ -174,14 +174,14 @@ _NDARRAYS = dict(kin=(dem.vec3, 2), prop=(dem.vec4, 1), nbr_off=(ti.i32, 1), nbr
                  rev_off=(ti.i32, 1), rev_pos=(ti.i32, 1), surf_id=(ti.i32, 2), surf_h=(dem.vec6f, 2),
                  tools=(ti.f64, 2), tool_acc=(ti.f64, 2), sdf=(dem.vec4f, 1), stat=(ti.f64, 1), partial=(ti.f64, 2),
                  blk_hot=(ti.i32, 1), blk_active=(ti.i32, 1), blk_box=(dem.vec3, 2), rev_holder=(ti.i32, 1),
-                 blk_list=(ti.i32, 1), tools_in=(ti.f64, 2), report=(ti.f64, 1))
+                 blk_list=(ti.i32, 1), tools_in=(ti.f64, 2), report=(ti.f64, 1), tool_gap=(ti.f64, 1))
 _SCALARS = dict(n_act=ti.i32, dt=ti.f64, bulk_damping=ti.f64, block=ti.i32, skip=ti.i32, todo=ti.i32, first=ti.i32,
                 upload=ti.i32, n_frozen=ti.i32)
 _BEGIN_ARGS = ("first", "upload", "tools_in", "tools", "tool_acc", "stat")
 _SUBSTEP_ARGS = ("n_act", "block", "skip", "todo", "dt", "bulk_damping", "kin", "prop", "flags", "x_ref", "own",
                  "rev_off", "pair_out", "surf_id", "surf_h", "tools", "tool_acc", "sdf", "prm", "stat", "partial",
                  "blk_active", "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "rev_holder",
-                 "n_frozen")
+                 "n_frozen", "tool_gap")
 _END_ARGS = ("tools", "tool_acc", "stat", "report")
 
 
@@ -235,6 +235,7 @@ class DemSoil:
         self._tool_names: list[str] = []
         self._sdf_blocks: list[np.ndarray] = []
         self._tools_host = np.zeros((dem.MAX_TOOLS, dem.T_WIDTH))
+        self._tools_on = np.zeros(dem.MAX_TOOLS, dtype=bool)  # which tools the kernels' rows have on
         self._tools_dirty = True
         self._last_impulse = np.zeros((0, 6))
         self._prm = ti.ndarray(ti.f64, dem.N_PRM)
@@ -342,6 +343,7 @@ class DemSoil:
             arr = getattr(self, "_" + name).to_numpy()
             out[name] = arr if size.get(name, n) is None else arr[:size.get(name, n)].copy()
         out["tools_host"] = self._tools_host.copy()
+        out["tools_host"][:, dem.T_TRAVEL] = 0.0  # (a bound the kernels keep for tool_gap, which a rebuild resets)
         out["counters"] = np.array([n, self.n_act, e, self.n_frozen, self._live_mask],  # (rebuilds: a diagnostic)
                                    dtype=np.int64)
         # the frozen prefix: its half of the cell table, and what decides the next partition
@@ -459,6 +461,8 @@ class DemSoil:
         self._surf_id, self._surf_id2 = (nd(ti.i32, (cap, dem.SURF_ID_WIDTH)) for _ in range(2))
         self._surf_h, self._surf_h2 = (nd(dem.vec6f, (cap, dem.SURF_SLOTS)) for _ in range(2))
         self._x_ref = nd(dem.vec4, cap)
+        self._tool_gap = nd(ti.f64, cap)
+        self._tool_gap.fill(-dem.HUGE)
         self._own = nd(dem.vec3, (cap, 2))
         blocks = max(min(cap, dem.STEP_BLOCKS), cap // dem.BLOCK) + 1
         self._partial = nd(ti.f64, (blocks, dem.PART_WIDTH))
@@ -719,6 +723,7 @@ class DemSoil:
         self._prm.from_numpy(prm)
         if self._blk_hot is not None:
             self._blk_hot.fill(1)
+            self._tool_gap.fill(-dem.HUGE)  # (a sleeping particle's reach may have changed)
             self._repartition_due = True  # (the frozen prefix is found anew before the next substeps)
 
     def _blocks_changed(self) -> None:
@@ -729,7 +734,7 @@ class DemSoil:
                                 self._scratch)
             dem.mark_awake_blocks(self.n_frozen, self.n_act, self._block, self._kin, self._surf_id, self._prm,
                                   self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j, self._rev_off,
-                                  self._rev_holder)
+                                  self._rev_holder, self._tool_gap)
         else:
             self._blk_hot.fill(1)
 
@@ -1055,10 +1060,15 @@ class DemSoil:
                     block=self._block, blk_hot=self._blk_hot, blk_active=self._blk_active,
                     blk_box=self._blk_box, rev_holder=self._rev_holder, blk_list=self._blk_list,
                     skip=int(self.skip_sleeping_blocks), tools_in=self._tools_in, report=self._report,
-                    first=0, upload=0, todo=0, n_frozen=self.n_frozen)
+                    first=0, upload=0, todo=0, n_frozen=self.n_frozen, tool_gap=self._tool_gap)
 
     def _upload_tool_rows(self) -> None:
-        """The host's tool rows into tools_in (begin_chunk copies them to the kernels' rows when asked to)."""
+        """The host's tool rows into tools_in (begin_chunk copies them to the kernels' rows when asked to). A tool
+        switched on or off, or a new one, voids the sleeping particles' tool clearances (tool_gap)."""
+        on = self._tools_host[:, dem.T_ON] > 0.0
+        if not np.array_equal(on, self._tools_on):
+            self._tool_gap.fill(-dem.HUGE)
+            self._tools_on = on
         if self._tools_in_view is not None:
             self._tools_in_view[:] = self._tools_host
         else:
@@ -1186,20 +1196,23 @@ class DemSoil:
         """Translational plus rotational kinetic energy of the active particles, J."""
         return float(self._totals()[4])
 
-    def particles(self) -> dict[str, np.ndarray]:
-        """Copies of the active particles' state (for recorders and tests; not for every step)."""
+    def particles(self, fields=None) -> dict[str, np.ndarray]:
+        """Copies of the active particles' state (for recorders and tests; not for every step): positions,
+        velocities, angular_velocities, radii, masses, or only the names in `fields`."""
+        columns = dict(positions=(0, 0), velocities=(0, 1), angular_velocities=(0, 2), radii=(1, 0), masses=(1, 1))
+        names = list(columns) if fields is None else list(fields)
+        unknown = [f for f in names if f not in columns]
+        if unknown:
+            raise ValueError(f"particles: no field {unknown[0]!r} (fields: {', '.join(columns)})")
         n = self.n_act
-        if n == 0:
-            empty = np.zeros((0, 3))
-            return dict(positions=empty, velocities=empty, angular_velocities=empty, radii=np.zeros(0),
-                        masses=np.zeros(0))
         views = [host_view(a) for a in (self._kin, self._prop, self._flags)]  # (a big soil: no full copies)
         kin, prop, flags = views if all(v is not None for v in views) else \
             (a.to_numpy() for a in (self._kin, self._prop, self._flags))
-        kin, prop = kin[:n], prop[:n]
+        arrays = (kin[:n], prop[:n])
         active = flags[:n] == 1
-        return dict(positions=kin[active, 0], velocities=kin[active, 1], angular_velocities=kin[active, 2],
-                    radii=prop[active, 0], masses=prop[active, 1])
+        # (all of them but for a substep after one left the domain: slices copy at twice the speed of a mask)
+        pick = slice(None) if active.all() else active
+        return {f: arrays[columns[f][0]][pick, columns[f][1]].copy() for f in names}
 
     def static_ground(self, x_axis: np.ndarray, y_axis: np.ndarray) -> np.ndarray:
         """Height of the static ground on a grid: 0, or the pit floor where the pit's footprint holds the node."""

@@ -301,7 +301,7 @@ def inside_tools(sim, planes: list[np.ndarray], positions: np.ndarray) -> list[n
 
 def mass_in_tools(sim, planes: list[np.ndarray]) -> list[float]:
     """Soil mass (kg) whose centres lie inside each tool's convex hull (binding order)."""
-    parts = sim.soil.particles()
+    parts = sim.soil.particles(("positions", "masses"))
     return [float(parts["masses"][m].sum()) for m in inside_tools(sim, planes, parts["positions"])]
 
 
@@ -326,7 +326,7 @@ def ground_and_all_heightmaps(sim, planes: list[np.ndarray] | None = None) -> tu
     bucket over the trench is not read as a heap), and every grain."""
     grid, soil = sim.model.soil.grid, sim.soil
     z_all = soil.heightmap(grid.x, grid.y)
-    carried = carried_by_tools(sim, soil.particles()["positions"]) if sim.model.bindings else None
+    carried = carried_by_tools(sim, soil.particles(("positions",))["positions"]) if sim.model.bindings else None
     if carried is None or not np.any(carried):
         return z_all, z_all
     return soil.heightmap(grid.x, grid.y, exclude=carried), z_all

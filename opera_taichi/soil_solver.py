@@ -42,8 +42,8 @@ class SoilSolver(Protocol):
     def mass_budget(self) -> dict[str, float]:
         """kg: {'particles': in the solver, 'out_of_domain': booked as lost since it was built, ...}."""
 
-    def particles(self) -> dict[str, np.ndarray]:
-        """positions, velocities, radii, masses of the soil's particles (copies)."""
+    def particles(self, fields=None) -> dict[str, np.ndarray]:
+        """positions, velocities, radii, masses of the soil's particles (copies); only those named in `fields`."""
 
     def set_particles(self, positions, velocities=None, radii=None, angular_velocities=None) -> None:
         """Replace the soil by these particles (tests, scans)."""

@@ -114,17 +114,28 @@ def _drop(soil, settle: float = 0.15):
     return np.array(heights), asleep_before, soil
 
 
+def _landed(z) -> int:
+    """The sample of the first low point of a dropped grain's height: its impact."""
+    return int(np.nonzero(np.diff(z) > 0)[0][0])
+
+
+# Flight, impact and 50 ms of rebound are compared. The grain lands on the apex grain, a balance that it leaves by
+# rolling off to one side: when depends on round-off (the particle order of a sleeping or frozen bed differs), so
+# the heights after that are not one trajectory (on an Intel host 2.2 mm apart 0.2 s after the impact, 0.6 mm at
+# most within the 50 ms).
+REBOUND = 10
+
+
 def test_a_grain_dropped_on_a_sleeping_bed_bounces_as_on_an_awake_one():
     awake_z, asleep_awake, _ = _drop(_bed(False))
     sleep_z, asleep_count, soil = _drop(_bed(True))
     assert asleep_awake == 0 and asleep_count > 0.9 * soil.n_particles   # the bed did fall asleep
-    landed = int(np.nonzero(np.diff(awake_z) > 0)[0][0])                # the first low point: the impact
+    landed = _landed(awake_z)
     assert awake_z[0] - awake_z[landed] > 0.15                          # it fell 0.2 m onto the bed
-    # and bounced: the grain lands on the apex grain, which the impact pushes into the bed, so the rebound is small
-    # (0.6 mm, about 50 x the resting jitter) but a rebound
-    assert np.max(awake_z[landed:landed + 10]) > awake_z[landed] + 2.5e-4
-    assert np.max(np.abs(sleep_z - awake_z)) < 0.1 * 0.02               # the same flight, impact and rebound
-    assert sleep_z[-1] == pytest.approx(awake_z[-1], abs=0.1 * 0.02)      # and the same resting height
+    # and bounced (by 0.6 to 11 mm on the hosts tried: the impact pushes the apex grain into the bed)
+    assert np.max(awake_z[landed:landed + REBOUND]) > awake_z[landed] + 2.5e-4
+    window = slice(0, landed + REBOUND)
+    assert np.max(np.abs(sleep_z - awake_z)[window]) < 0.1 * 0.02       # the same flight, impact and rebound
 
 
 def test_a_grain_dropped_on_a_frozen_bed_bounces_as_on_an_awake_one(freeze_any_bed):
@@ -135,8 +146,8 @@ def test_a_grain_dropped_on_a_frozen_bed_bounces_as_on_an_awake_one(freeze_any_b
     frozen_z, _, soil = _drop(_bed(True))
     assert soil.frozen_seen > 0.8 * soil.n_particles              # the bed was frozen ...
     assert soil.n_frozen < soil.frozen_seen                       # ... and the impact thawed part of it
-    assert np.max(np.abs(frozen_z - awake_z)) < 0.1 * 0.02
-    assert frozen_z[-1] == pytest.approx(awake_z[-1], abs=0.1 * 0.02)
+    window = slice(0, _landed(awake_z) + REBOUND)
+    assert np.max(np.abs(frozen_z - awake_z)[window]) < 0.1 * 0.02
 
 
 def _compressed_dig(skip: bool, steps: int):
@@ -173,8 +184,10 @@ def _compressed_dig(skip: bool, steps: int):
 
 def test_skipping_sleeping_blocks_and_keeping_still_lists_change_no_bit():
     """A sleeping soil skips the blocks of particles that are asleep among sleeping partners and out of every tool's
-    reach, and a rebuild keeps the lists of particles around which nothing moved: exactly the work that would change
-    nothing, so the dig's every particle, spring and list is the same, bit for bit, as with all of it done."""
+    reach, a rebuild keeps the lists of particles around which nothing moved, and a particle skips the SDF test while
+    the tools have not travelled as far as its last clearance from them: exactly the work that would change nothing,
+    so the dig's every particle, spring and list is the same, bit for bit, as with all of it done. (A clearance
+    overstated by 5 cm fails this.)"""
     from kernels import dem
 
     fast, active, kept = _compressed_dig(True, 3000)

@@ -109,6 +109,21 @@ def test_mass_is_conserved_while_a_blade_cuts_the_bed(solver):
     assert abs(total_mass(soil) - start["particles"]) <= 1e-9 * start["particles"]
 
 
+def test_particles_copies_the_fields_asked_for(solver):
+    """particles(fields) gives those arrays only, equal to the full copy's and not views of the solver's state; their
+    masses add up to the mass budget; a field it does not have is an error naming it."""
+    soil = make_soil(solver)
+    full = soil.particles()
+    part = soil.particles(("masses", "positions"))
+    assert list(part) == ["masses", "positions"]
+    assert np.array_equal(part["masses"], full["masses"]) and np.array_equal(part["positions"], full["positions"])
+    assert part["masses"].sum() == pytest.approx(soil.mass_budget()["particles"], rel=1e-9)
+    part["positions"][:] = 0.0
+    assert np.array_equal(soil.particles(("positions",))["positions"], full["positions"])
+    with pytest.raises(ValueError, match="no field 'mass'"):
+        soil.particles(("mass",))
+
+
 # --------------------------------------------------------------------------------------------- 2. third law
 def test_tool_impulse_is_what_the_particles_lose_in_free_flight(solver):
     """A clump of grains falling freely (far above the ground and the pit, inside the domain) with a box tool
