@@ -693,13 +693,11 @@ class DemSoil:
 
     def _tool_spheres(self) -> np.ndarray:
         """(MAX_TOOLS, 4): each tool's on flag and the world centre of its bounding sphere (host rows)."""
-        out = np.zeros((dem.MAX_TOOLS, 4))
-        for t, row in enumerate(self._tools_host):
-            if row[dem.T_ON] > 0.0:
-                rot = row[dem.T_ROT:dem.T_ROT + 9].reshape(3, 3)
-                out[t, 0] = 1.0
-                out[t, 1:] = row[dem.T_POS:dem.T_POS + 3] + rot @ row[dem.T_BS:dem.T_BS + 3]
-        return out
+        rows = self._tools_host
+        on = rows[:, dem.T_ON] > 0.0  # (vectorised: this runs before every rigid step of a frozen soil)
+        rot = rows[:, dem.T_ROT:dem.T_ROT + 9].reshape(-1, 3, 3)
+        centres = rows[:, dem.T_POS:dem.T_POS + 3] + (rot @ rows[:, dem.T_BS:dem.T_BS + 3, None])[:, :, 0]
+        return np.where(on[:, None], np.column_stack([np.ones(len(rows)), centres]), 0.0)
 
     def _partition_stale(self) -> bool:
         """Whether the next substeps need a new partition: the tools moved or switched, new parameters, or (nothing
