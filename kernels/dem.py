@@ -585,7 +585,9 @@ def _tool_sample(sdf: ti.template(), tools: ti.template(), t, x, reach):
         clear = ti.max(ti.max(lo - p_local, p_local - hi), 0.0).norm()
         if clear <= 0.0:
             sample = sample_sdf(sdf, tools, t, p_local)
-            clear = ti.max((sample[0] - reach - 2.0 * h) / SQRT_THREE, 0.0)
+            clear = 0.0  # (on the box's upper faces sample_sdf's half-open test may say outside: test again)
+            if sample[0] < HUGE:
+                clear = ti.max((sample[0] - reach - 2.0 * h) / SQRT_THREE, 0.0)
         clear = ti.min(clear, CLEAR_MARGIN * r_bs)
     return sample, clear
 
