@@ -70,6 +70,9 @@ class Simulation:
             # (machine, link) of each machine-bound tool, in soil tool order; standalone tools follow
             self._bound = [(self.machines[b.owner], b.link) for b in model.bindings if b.owner is not None]
             self._push_tool_states()
+            warm_up = getattr(self.soil, "warm_up", None)  # (optional for a solver: compiles, runs nothing)
+            if warm_up is not None:
+                warm_up(model.dt)
 
     @classmethod
     def from_scene(cls, scene, overrides: dict | list | None = None, arch: str | None = None,
