@@ -1107,11 +1107,20 @@ class DemSoil:
                 return report
 
     def warm_up(self, duration: float) -> None:
-        """Compile the substeps that advance(duration) runs first (a compute graph: several seconds the first time
-        on a machine, about 0.8 s from Taichi's disk cache), so that a run's clock does not count them. Runs
-        nothing."""
+        """Compile the substeps that advance(duration) runs first (7.5 s the first time on a machine, 0.8 s from
+        Taichi's disk cache), so that a run's clock does not count them: their compute graph is built and run with
+        no substep to do (mark_blocks lists nothing and clears S_RUN), which moves nothing."""
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
-        _chunk_graph(min(n_sub, CHUNK_MAX), self._serial_cpu and self._active_slots < SERIAL_BELOW)
+        k = min(n_sub, CHUNK_MAX)
+        serial = self._serial_cpu and self._active_slots < SERIAL_BELOW
+        args = self._kernel_args(duration / n_sub, 0.0)  # (todo = 0, first = 0: the tool rows are not touched)
+        graph = _chunk_graph(k, serial)
+        if graph is not None:
+            graph.run(args)
+        else:
+            dem.begin_chunk(*(args[a] for a in _BEGIN_ARGS))
+            _substep_kernel(serial)(*(args[a] for a in _SUBSTEP_ARGS))
+            dem.end_chunk(*(args[a] for a in _END_ARGS))
 
     def advance(self, duration: float) -> np.ndarray:
         """Advance by `duration` in n = ceil(duration / dt) equal substeps, tools moving kinematically.
