@@ -147,7 +147,7 @@ T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2,
 T_BS = 27         # bounding sphere of the SDF grid (link-frame centre, radius): no contact outside it
 T_TRAVEL = 31     # how far, at most, a point near the tool has moved in the tool's frame since the start (m; tool_gap)
 T_WIDTH = 32
-# A sleeping particle's tool clearance (tool_gap) is trusted while the tool has travelled less than it: within
+# A particle's tool clearance (tool_gap) is trusted while the tools have travelled less than it: within
 # CLEAR_MARGIN x the bounding radius of the sphere, the motion is bounded by the translation and the rotation at
 # that lever; the trilinear SDF of a distance field changes by at most sqrt(3) per metre (each partial derivative
 # is an average of grid differences of at most 1), less two grid spacings for the distance transform inside bodies.

@@ -1062,7 +1062,7 @@ class DemSoil:
 
     def _upload_tool_rows(self) -> None:
         """The host's tool rows into tools_in (begin_chunk copies them to the kernels' rows when asked to). A tool
-        switched on or off, or a new one, voids the sleeping particles' tool clearances (tool_gap)."""
+        switched on or off, or a new one, voids the particles' tool clearances (tool_gap)."""
         on = self._tools_host[:, dem.T_ON] > 0.0
         if not np.array_equal(on, self._tools_on):
             self._tool_gap.fill(-dem.HUGE)
@@ -1107,7 +1107,7 @@ class DemSoil:
                 return report
 
     def warm_up(self, duration: float) -> None:
-        """Compile the substeps that advance(duration) runs first (7.5 s the first time on a machine, 0.8 s from
+        """Compile the substeps that advance(duration) runs first (about 7 s the first time on a machine, 0.8 s from
         Taichi's disk cache), so that a run's clock does not count them: their compute graph is built and run with
         no substep to do (mark_blocks lists nothing and clears S_RUN), which moves nothing."""
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))

@@ -124,6 +124,23 @@ def test_particles_copies_the_fields_asked_for(solver):
         soil.particles(("mass",))
 
 
+def test_warm_up_compiles_and_moves_nothing(solver):
+    """warm_up (optional in the protocol) runs the first step's kernels with nothing to do: every particle, spring
+    and list is as it was, and the next step is the step the soil would have taken without it."""
+    soil, again = make_soil(solver), make_soil(solver)
+    warm_up = getattr(soil, "warm_up", None)
+    if warm_up is None:
+        pytest.skip(f"{type(soil).__name__} has no warm_up")
+    before = soil.get_state()
+    warm_up(STEP)
+    after = soil.get_state()
+    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "x_ref"):
+        assert np.array_equal(before[name], after[name]), name
+    tools = [s.add_tool("blade", trimesh.creation.box(BLADE)) for s in (soil, again)]
+    assert np.array_equal(cut(soil, tools[0], 0, 5), cut(again, tools[1], 0, 5))
+    assert np.array_equal(soil.particles()["positions"], again.particles()["positions"])
+
+
 # --------------------------------------------------------------------------------------------- 2. third law
 def test_tool_impulse_is_what_the_particles_lose_in_free_flight(solver):
     """A clump of grains falling freely (far above the ground and the pit, inside the domain) with a box tool
