@@ -61,3 +61,27 @@ def host_view(arr) -> np.ndarray | None:
     shape = tuple(arr.shape) + tuple(getattr(arr, "element_shape", None) or ())  # (vectors are stored packed)
     buffer = (ctype * int(np.prod(shape))).from_address(prog.get_ndarray_data_ptr_as_int(arr.arr))
     return np.ctypeslib.as_array(buffer).reshape(shape)
+
+
+def precompile(*kernels) -> int:
+    """Compile ndarray kernels (or load them from Taichi's disk cache) without launching them, so that their first
+    call in a run does not compile on the run's clock. Returns how many compiled: the arguments are examples built
+    from the kernels' annotations (scalars and ndarrays), through Taichi 1.7's Kernel internals; a kernel they do not
+    fit, or another Taichi, compiles at its first call instead."""
+    prog = ti.lang.impl.get_runtime().prog
+    done = 0
+    for kernel in kernels:
+        try:
+            primal = kernel._primal
+            key = primal.ensure_compiled(*(_example_arg(a.annotation) for a in primal.arguments))
+            prog.compile_kernel(prog.config(), prog.get_device_caps(), primal.compiled_kernels[key])
+        except Exception:  # noqa: BLE001 - only a missed optimisation: the first call compiles as usual
+            continue
+        done += 1
+    return done
+
+
+def _example_arg(annotation):
+    if isinstance(annotation, ti.types.ndarray_type.NdarrayType):
+        return ti.ndarray(annotation.dtype, (1,) * annotation.ndim)
+    return 0.0 if annotation in (ti.f32, ti.f64) else 0

@@ -38,3 +38,40 @@ def test_a_host_view_of_a_vector_array_has_its_element_axes():
     view = host_view(arr)
     assert view is not None and view.shape == (5, 3, 3)
     assert np.array_equal(view, values) and np.array_equal(view, arr.to_numpy())
+
+
+@ti.kernel
+def _scaled_sum(a: ti.types.ndarray(ti.f32, 1), scale: ti.f64) -> ti.f64:
+    total = 0.0
+    for i in range(a.shape[0]):
+        total += scale * a[i]
+    return total
+
+
+@ti.kernel
+def _fill_field(f: ti.template(), value: ti.f64):
+    for i in f:
+        f[i] = value
+
+
+def test_precompile_compiles_without_a_launch_and_skips_what_it_cannot_fit():
+    """precompile (DemSoil.warm_up's rebuild and observer kernels) materialises a kernel from its annotations alone,
+    so its first call compiles nothing; a kernel whose arguments it cannot make up (a field template) is left to its
+    first call."""
+    from opera_taichi import dem_soil
+    from opera_taichi.backend import precompile
+    from opera_taichi.kernels import dem
+    if current_arch() is None:
+        init_taichi("cpu")
+    assert precompile(_scaled_sum) == 1
+    compiled = dict(_scaled_sum._primal.compiled_kernels)
+    arr = ti.ndarray(ti.f32, 4)
+    arr.from_numpy(np.arange(4, dtype=np.float32))
+    assert _scaled_sum(arr, 2.0) == 12.0
+    assert _scaled_sum._primal.compiled_kernels == compiled       # the call found it compiled
+    assert precompile(_fill_field) == 0
+    field = ti.field(ti.f64, 3)
+    _fill_field(field, 1.5)
+    assert np.array_equal(field.to_numpy(), [1.5, 1.5, 1.5])
+    kernels = [getattr(dem, name) for name in dem_soil.WARM_KERNELS]
+    assert precompile(*kernels) == len(kernels)
