@@ -1115,7 +1115,8 @@ class DemSoil:
         """Compile the substeps that advance(duration) runs first (about 7 s the first time on a machine, 0.8 s from
         Taichi's disk cache), so that a run's clock does not count them: their compute graph is built and run with
         no substep to do (mark_blocks lists nothing and clears S_RUN), which moves nothing. The rebuild and observer
-        kernels are compiled without a launch (the site's first repartition took 0.3 s longer from the disk cache)."""
+        kernels are compiled without a launch: those a run first launches after its setup (the frozen partition's,
+        the observers') no longer compile on its clock."""
         precompile(*(getattr(dem, name) for name in WARM_KERNELS))
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
