@@ -211,9 +211,21 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
      thicken the layer under the edge more. A dimer also costs two spheres and their bond.
    Across the sphere and grain models the heap angle and the blade's excess rise together (16 deg: 1.28 x; 21 deg:
    1.58 x at 3.4 across; 29-31 deg: 1.8-2.2 x at 4). A granular model that heaps at 33 deg has a rupture zone a
-   grain or two thick below the edge, and at 4 grains across that zone is a third of the cut. The earthmoving
-   equation's thin rupture surface needs grains much smaller than the cut, or a model that does not resolve the
-   rupture with grains: a continuum or FEE-based soil wedge near the tool (AGX Terrain's aggregate model).
+   grain or two thick below the edge, and at 4 grains across that zone is a third of the cut.
+   **A continuum at the same resolution has the same excess.** A scouting run outside the project: 2-D plane-strain
+   MLS-MPM (APIC, quadratic B-splines, 4 particles a cell), Drucker-Prager sand after Klar et al. 2016 with the cone
+   matched to Mohr-Coulomb in plane strain (alpha = sin(phi) / sqrt(2), phi 35 deg, no dilation), E 5 MPa. The
+   same cut as the gate: a smooth vertical blade as a separable grid boundary, d 0.3 m below it, a rough floor, the
+   spoil above the surface removed, 0.1 m/s, draft over d to 3d of travel. Against Rankine (the FEE's 2,769 N/m):
+   - 4 cells across d: 1.76-1.77 x with the blade's lowest node row at the cut depth or a cell above it, and 1.21 x
+     with that row a cell above and the soil left behind the blade reaching the cut depth;
+   - 8 cells across d: 1.32 x (two placements);
+   - 16 cells across d: 0.99 x.
+   The DEM read 1.73-1.82 x at 4 grains across and 1.37 x at 8 (`docs/experiments/mpm_blade_2d.py` reproduces the
+   MPM runs). At coarse resolution the draft follows how the edge sits within a cell or a grain. The excess is the
+   discretisation of the edge, not the grains' physics. The 4- and 8-across gates need the edge's neighbourhood resolved finer than the rest: local refinement
+   around the cutting edge (Pogulis & Servin 2025 refine DEM grains near the surface), or an FEE-based soil wedge
+   at the tool (AGX Terrain's aggregates).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
