@@ -5,6 +5,7 @@ import ctypes
 
 import numpy as np
 import taichi as ti
+from taichi.lang.matrix import MatrixType
 
 from .errors import UserError
 
@@ -69,11 +70,14 @@ def precompile(*kernels) -> int:
     from the kernels' annotations (scalars and ndarrays), through Taichi 1.7's Kernel internals; a kernel they do not
     fit, or another Taichi, compiles at its first call instead."""
     prog = ti.lang.impl.get_runtime().prog
+    if prog is None:  # Taichi not started: nothing to compile for
+        return 0
     done = 0
     for kernel in kernels:
         try:
             primal = kernel._primal
-            key = primal.ensure_compiled(*(_example_arg(a.annotation) for a in primal.arguments))
+            args = [_example_arg(a.annotation) for a in primal.arguments]
+            key = primal.ensure_compiled(*args)
             prog.compile_kernel(prog.config(), prog.get_device_caps(), primal.compiled_kernels[key])
         except Exception:  # noqa: BLE001 - only a missed optimisation: the first call compiles as usual
             continue
@@ -82,6 +86,13 @@ def precompile(*kernels) -> int:
 
 
 def _example_arg(annotation):
+    """An argument of the annotated type; a template (a field or a compile-time value) has no example."""
     if isinstance(annotation, ti.types.ndarray_type.NdarrayType):
         return ti.ndarray(annotation.dtype, (1,) * annotation.ndim)
-    return 0.0 if annotation in (ti.f32, ti.f64) else 0
+    if isinstance(annotation, MatrixType):  # a vector or matrix passed by value
+        return annotation(*([0.0] * int(np.prod(annotation.get_shape()))))
+    if annotation in (ti.f32, ti.f64):
+        return 0.0
+    if annotation in (ti.i32, ti.i64, ti.u32, ti.u64, ti.i8, ti.i16, ti.u8, ti.u16):
+        return 0
+    raise TypeError(f"no example argument for {annotation!r}")

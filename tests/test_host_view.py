@@ -54,10 +54,17 @@ def _fill_field(f: ti.template(), value: ti.f64):
         f[i] = value
 
 
+@ti.kernel
+def _times(a: ti.types.ndarray(ti.f64, 1), k: ti.template()):
+    for i in range(a.shape[0]):
+        a[i] *= k
+
+
 def test_precompile_compiles_without_a_launch_and_skips_what_it_cannot_fit():
-    """precompile (DemSoil.warm_up's rebuild and observer kernels) materialises a kernel from its annotations alone,
-    so its first call compiles nothing; a kernel whose arguments it cannot make up (a field template) is left to its
-    first call."""
+    """precompile (DemSoil.warm_up's rebuild and observer kernels) materialises a kernel from its annotations alone
+    (Taichi's front end: what its first call from the disk cache cost) and hands it to the backend, so its first call
+    finds it built; a kernel with a template argument (a field, a compile-time value) is left to its first call.
+    (Whether the backend compiled it too is not visible from Python: the kernel's first call would do it.)"""
     from opera_taichi import dem_soil
     from opera_taichi.backend import precompile
     from opera_taichi.kernels import dem
@@ -69,9 +76,14 @@ def test_precompile_compiles_without_a_launch_and_skips_what_it_cannot_fit():
     arr.from_numpy(np.arange(4, dtype=np.float32))
     assert _scaled_sum(arr, 2.0) == 12.0
     assert _scaled_sum._primal.compiled_kernels == compiled       # the call found it compiled
-    assert precompile(_fill_field) == 0
+    assert precompile(_fill_field) == 0 and not _fill_field._primal.compiled_kernels
     field = ti.field(ti.f64, 3)
     _fill_field(field, 1.5)
     assert np.array_equal(field.to_numpy(), [1.5, 1.5, 1.5])
+    assert precompile(_times) == 0 and not _times._primal.compiled_kernels   # (not a variant for k = 0)
+    twice = ti.ndarray(ti.f64, 2)
+    twice.from_numpy(np.array([1.0, 2.0]))
+    _times(twice, 3)
+    assert np.array_equal(twice.to_numpy(), [3.0, 6.0])
     kernels = [getattr(dem, name) for name in dem_soil.WARM_KERNELS]
     assert precompile(*kernels) == len(kernels)

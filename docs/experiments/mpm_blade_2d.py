@@ -7,12 +7,16 @@ vertical blade (a90 delta0, a separable grid boundary) cuts d = 0.3 m deep with 
 floor under that, at 0.1 m/s; spoil rising above the surface is removed (the FEE without surcharge). Prints the
 draft per metre over travel d..3d against Rankine (= the FEE's 2,769 N/m for phi 35 deg, 1700 kg/m3).
 
-    python docs/experiments/mpm_blade_2d.py N [EDGE_OFFSET] [E]
+    python docs/experiments/mpm_blade_2d.py N [EDGE_ROW] [CLEAR] [E]
 
-N cells across d. EDGE_OFFSET moves the blade's lowest node row (je) and the top of the soil left behind the blade
-(ye) within a cell: 0 puts both at the cut depth; 0.5 (the default) and 1 put the row a cell above it, with the
-soil behind half a cell above and at the cut depth. 2026-11-26, 2-vCPU Intel Xeon: N 4 / 8 / 16 read 1.76 / 1.32 /
-0.99 x (9 / 31 / 191 s); N 4 with EDGE_OFFSET 0 read 1.77 x and with 1, 1.21 x; N 8 with 0, 1.32 x."""
+N cells across d. EDGE_ROW (0 or 1): the blade's lowest constrained node row at the cut depth (0) or a cell above
+it (1); the soil left behind the blade reaches the cut depth either way. CLEAR (cells, default 0.1): how far above
+the surface spoil is removed. E: Young's modulus, Pa (default 5e6). It also prints the depth of the floor the blade
+left behind: the FEE goes as the depth squared, so draft / FEE at the depth actually cut is ratio / (floor / d)^2.
+
+2026-11-26, 2-vCPU Intel Xeon, EDGE_ROW 0 / 1: N 4: 1.61 / 1.08 x, floor 1.12 / 0.89 d (8 s each); N 8: 1.25 /
+1.00 x, floor 1.06 / 0.94 d (31 s); N 16: 1.08 / 0.96 x, floor 1.03 / 0.97 d (185 s).
+"""
 import math
 import sys
 import time
@@ -22,8 +26,9 @@ import taichi as ti
 
 ti.init(arch=ti.cpu, default_fp=ti.f64, log_level="error")
 n = int(sys.argv[1])
-edge_off = float(sys.argv[2]) if len(sys.argv) > 2 else 0.5   # edge between node rows (0.5) or on a row (0)
-E = float(sys.argv[3]) if len(sys.argv) > 3 else 5e6
+edge_row = int(sys.argv[2]) if len(sys.argv) > 2 else 0
+clear_cells = float(sys.argv[3]) if len(sys.argv) > 3 else 0.1
+E = float(sys.argv[4]) if len(sys.argv) > 4 else 5e6
 d = 0.3
 dx = d / n
 inv_dx = 1.0 / dx
@@ -38,9 +43,9 @@ L, Hdom = 2.7, 1.1
 nx, ny = int(L / dx) + 4, int(Hdom / dx) + 4
 pad = 3
 y0 = pad * dx
-ys = y0 + 2 * d                      # surface
-je = int(round((ys - d) / dx + edge_off))   # first node row of the blade
-ye = (je - edge_off) * dx            # nominal edge height
+ys = (pad + 2 * n) * dx              # surface (whole cells: no rounding of the rows below)
+ye = (pad + n) * dx                  # cut depth: the soil behind the blade reaches it
+je = pad + n + edge_row              # the blade's lowest constrained node row
 x0 = 0.35
 tb = max(2 * dx, 0.06)
 xr = L - 0.05
@@ -148,7 +153,7 @@ def substep(xb: float, vb: float, damp: float, clear: int):
         v[p], C[p] = nv, nC
         x[p] += dt * nv
         F[p] = (ti.Matrix.identity(float, 2) + dt * nC) @ F[p]
-        if clear != 0 and x[p][1] > ys + 0.5 * dx and x[p][0] > xb - tb:
+        if clear != 0 and x[p][1] > ys + clear_cells * dx and x[p][0] > xb - tb:
             pm[p] = 0.0                          # spoil above the surface: the FEE without surcharge
 
 
@@ -177,5 +182,13 @@ kp = math.tan(math.pi / 4 + phi / 2) ** 2
 rankine = 0.5 * kp * rho * g * d ** 2
 prof = [round(float(s[(s[:, 0] >= a) & (s[:, 0] < a + d / 2), 1].mean() / rankine), 2)
         for a in np.arange(0, 3 * d, d / 2)]
-print(f"n={n} edge_off={edge_off} E={E:.0e} particles={npart} dt={dt:.2e} draft={draft:.0f} N/m "
-      f"ratio={draft / rankine:.3f} per d/2 of travel {prof} wall {time.time() - t0:.0f} s")
+# the floor left behind the blade: the highest particle per cell column over the cut, below the surface
+xs, ms = x.to_numpy(), pm.to_numpy()
+keep = (ms > 0) & (xs[:, 0] > x0 + 0.1) & (xs[:, 0] < x0 + travel - 0.3)
+cols = np.floor(xs[keep, 0] / dx).astype(int)
+tops = np.full(cols.max() + 1, -np.inf)
+np.maximum.at(tops, cols, xs[keep, 1] + 0.25 * dx)
+floor_depth = float(ys - tops[np.isfinite(tops)].mean())
+print(f"n={n} edge_row={edge_row} clear={clear_cells} E={E:.0e} particles={npart} dt={dt:.2e} draft={draft:.0f} N/m "
+      f"ratio={draft / rankine:.3f} per d/2 of travel {prof} floor depth / d {floor_depth / d:.3f} "
+      f"wall {time.time() - t0:.0f} s")

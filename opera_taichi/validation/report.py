@@ -191,7 +191,7 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    0.18 from the mapping) 0.86 / 1.42 (0.491). Lower friction packs denser and the two largely cancel (as particle
    friction 0.7 tan(phi) did at the default resolution: 1.25 x on the old metric); rolling resistance, which sets
    the heaps, cannot be lowered for the wall's sake.
-   **What gives the heap its angle also gives the blade its excess: two grain models tried, both left out.** At 4
+   **Two grain models tried at 4 grains across, both left out: neither keeps the heap and lowers the draft.** At 4
    grains across (one run each, on seed 0 unless said, on a 2-vCPU Intel Xeon where the mapping read a90 1.81 x,
    the wall 1.44 x and the coarse sand heap 30.6 deg; a scratch copy, `validate-physics blade_cut|passive_wall
    --resolution 4`, `repose --resolution coarse`):
@@ -209,23 +209,32 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
      deg; the spheres with the mapping's rolling resistance gave 1.82 x and 32.7 deg on that seed (1.81 x and
      30.6 deg on seed 0). Elongated grains heap no steeper than the spheres with rolling resistance, and they
      thicken the layer under the edge more. A dimer also costs two spheres and their bond.
-   Across the sphere and grain models the heap angle and the blade's excess rise together (16 deg: 1.28 x; 21 deg:
-   1.58 x at 3.4 across; 29-31 deg: 1.8-2.2 x at 4). A granular model that heaps at 33 deg has a rupture zone a
-   grain or two thick below the edge, and at 4 grains across that zone is a third of the cut.
-   **A continuum at the same resolution has the same excess.** A scouting run outside the project: 2-D plane-strain
-   MLS-MPM (APIC, quadratic B-splines, 4 particles a cell), Drucker-Prager sand after Klar et al. 2016 with the cone
-   matched to Mohr-Coulomb in plane strain (alpha = sin(phi) / sqrt(2), phi 35 deg, no dilation), E 5 MPa. The
-   same cut as the gate: a smooth vertical blade as a separable grid boundary, d 0.3 m below it, a rough floor, the
-   spoil above the surface removed, 0.1 m/s, draft over d to 3d of travel. Against Rankine (the FEE's 2,769 N/m):
-   - 4 cells across d: 1.76-1.77 x with the blade's lowest node row at the cut depth or a cell above it, and 1.21 x
-     with that row a cell above and the soil left behind the blade reaching the cut depth;
-   - 8 cells across d: 1.32 x (two placements);
-   - 16 cells across d: 0.99 x.
-   The DEM read 1.73-1.82 x at 4 grains across and 1.37 x at 8 (`docs/experiments/mpm_blade_2d.py` reproduces the
-   MPM runs). At coarse resolution the draft follows how the edge sits within a cell or a grain. The excess is the
-   discretisation of the edge, not the grains' physics. The 4- and 8-across gates need the edge's neighbourhood resolved finer than the rest: local refinement
-   around the cutting edge (Pogulis & Servin 2025 refine DEM grains near the surface), or an FEE-based soil wedge
-   at the tool (AGX Terrain's aggregates).
+   With spheres the heap and the excess move together (a rolling resistance that acts as 0.06 in flow: 16 deg and
+   1.28 x; the mapping's 0.3: 31-33 deg and 1.8 x). The dimers heap lower than the spheres with rolling resistance
+   and draw more (27-29 deg and 2.2 x at 4 volume-equivalent grains across).
+   **A continuum has less of the excess, but not none.** A scouting run outside the project
+   (`docs/experiments/mpm_blade_2d.py`): 2-D plane-strain MLS-MPM (APIC, quadratic B-splines, 4 particles a cell),
+   Drucker-Prager sand after Klar et al. 2016 with the cone matched to Mohr-Coulomb in plane strain (alpha = sin(phi)
+   / sqrt(2), phi 35 deg, no dilation), E 5 MPa. The same cut as the gate: a smooth vertical blade, d 0.3 m deep
+   with d of soil below its edge, a rough floor under that, 0.1 m/s, draft over d to 3d of travel, spoil rising
+   0.1 cell above the surface removed. The blade is a separable grid boundary whose lowest constrained node row
+   sits at the cut depth or a cell above it. The floor it leaves then lies below or above the cut depth, so each
+   draft is also compared with the FEE at the depth actually cut (the floor's; the FEE goes as the depth squared):
+
+   | cells across d | draft / FEE(d), row at d / a cell above | floor / d | draft / FEE(floor) |
+   |---|---|---|---|
+   | 4 | 1.61 / 1.08 | 1.12 / 0.89 | 1.28 / 1.36 |
+   | 8 | 1.25 / 1.00 | 1.06 / 0.94 | 1.11 / 1.14 |
+   | 16 | 1.08 / 0.96 | 1.03 / 0.97 | 1.02 / 1.03 |
+
+   The DEM's floor lies at the cut depth (1.00-1.02 d after the 4-across cuts above), where it reads 1.74-1.77 x at
+   4 grains across and about 1.37 x at 8. At the depth it cut, the continuum's excess (0.28-0.36, 0.11-0.14, 0.02
+   at 4, 8 and 16 cells) is about 40% of the grains' at 4 across and a third at 8, and it falls faster with
+   resolution. Part of the excess is the discretisation of the edge; the larger part is granular. A continuum at
+   the tool would pass the 8-across gate and narrowly miss the 4-across one, provided its tool boundary were placed
+   within the cell (the placement moves the cut depth by +-12% at 4 cells). What remains for the 4- and 8-across
+   gates: local refinement around the cutting edge (Pogulis & Servin 2025 refine DEM grains near the surface), a
+   continuum near the tool, or an FEE-based soil wedge at the tool (AGX Terrain's aggregates).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
