@@ -15,7 +15,8 @@ the surface spoil is removed. E: Young's modulus, Pa (default 5e6). It also prin
 left behind: the FEE goes as the depth squared, so draft / FEE at the depth actually cut is ratio / (floor / d)^2.
 
 2026-11-26, 2-vCPU Intel Xeon, EDGE_ROW 0 / 1: N 4: 1.61 / 1.08 x, floor 1.12 / 0.89 d (8 s each); N 8: 1.25 /
-1.00 x, floor 1.06 / 0.94 d (31 s); N 16: 1.08 / 0.96 x, floor 1.03 / 0.97 d (185 s).
+1.00 x, floor 1.06 / 0.94 d (31 s); N 16: 1.08 / 0.96 x, floor 1.03 / 0.97 d (185 s). With E 2e7: N 4: 1.72 /
+1.17 x, floor 1.11 / 0.88 d; N 8, EDGE_ROW 1: 1.05 x, floor 0.94 d.
 """
 import math
 import sys

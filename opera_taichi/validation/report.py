@@ -227,14 +227,17 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    | 8 | 1.25 / 1.00 | 1.06 / 0.94 | 1.11 / 1.14 |
    | 16 | 1.08 / 0.96 | 1.03 / 0.97 | 1.02 / 1.03 |
 
+   A stiffer continuum (E 20 MPa) reads more: 1.72 / 1.17 x with the floor at 1.11 / 0.88 d, so 1.40-1.50 x at the
+   depth it cut at 4 cells, and 1.05 x with the floor at 0.94 d (1.18 x) at 8.
    The DEM's floor lies at the cut depth (1.00-1.02 d after the 4-across cuts above), where it reads 1.74-1.77 x at
-   4 grains across and about 1.37 x at 8. At the depth it cut, the continuum's excess (0.28-0.36, 0.11-0.14, 0.02
-   at 4, 8 and 16 cells) is about 40% of the grains' at 4 across and a third at 8, and it falls faster with
-   resolution. Part of the excess is the discretisation of the edge; the larger part is granular. A continuum at
-   the tool would pass the 8-across gate and narrowly miss the 4-across one, provided its tool boundary were placed
-   within the cell (the placement moves the cut depth by +-12% at 4 cells). What remains for the 4- and 8-across
-   gates: local refinement around the cutting edge (Pogulis & Servin 2025 refine DEM grains near the surface), a
-   continuum near the tool, or an FEE-based soil wedge at the tool (AGX Terrain's aggregates).
+   4 grains across and about 1.37 x at 8. At the depth it cut, the continuum's excess (0.28-0.50 at 4 cells,
+   0.11-0.18 at 8, 0.02 at 16) is 40-65% of the grains' at 4 across and a third to a half at 8, depending on its
+   stiffness, and it falls faster with resolution. Part of the excess is the discretisation of the edge; the rest
+   is granular. A continuum at the tool would miss the 4-across gate and reach the 8-across one only when soft,
+   and only with its tool boundary placed within the cell (the placement moves the cut depth by +-12% at 4 cells).
+   What remains for the 4- and 8-across gates: local refinement around the cutting edge (Pogulis & Servin 2025
+   refine DEM grains near the surface), a finely resolved continuum near the tool, or an FEE-based soil wedge at the
+   tool (AGX Terrain's aggregates).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
