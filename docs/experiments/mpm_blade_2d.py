@@ -25,11 +25,17 @@ import time
 import numpy as np
 import taichi as ti
 
+try:
+    n = int(sys.argv[1])
+    edge_row = int(sys.argv[2]) if len(sys.argv) > 2 else 0
+    clear_cells = float(sys.argv[3]) if len(sys.argv) > 3 else 0.1
+    E = float(sys.argv[4]) if len(sys.argv) > 4 else 5e6
+    if not (2 <= n <= 64 and edge_row in (0, 1) and 0.0 <= clear_cells < 10.0 and 1e5 <= E <= 1e9):
+        raise ValueError
+except (IndexError, ValueError):
+    print("usage: mpm_blade_2d.py N (2-64) [EDGE_ROW 0|1] [CLEAR cells, 0-10] [E Pa, 1e5-1e9]", file=sys.stderr)
+    sys.exit(2)
 ti.init(arch=ti.cpu, default_fp=ti.f64, log_level="error")
-n = int(sys.argv[1])
-edge_row = int(sys.argv[2]) if len(sys.argv) > 2 else 0
-clear_cells = float(sys.argv[3]) if len(sys.argv) > 3 else 0.1
-E = float(sys.argv[4]) if len(sys.argv) > 4 else 5e6
 d = 0.3
 dx = d / n
 inv_dx = 1.0 / dx
