@@ -94,9 +94,11 @@ class ReplayWriter:
             self.fh = open(self.path, "r+b")
             self.fh.truncate(append_at)
             self.fh.seek(append_at)
-        else:
-            self.fh = open(self.path, "wb")
+        else:   # the header is written aside and renamed in: a reader of a live run never sees a torn header
+            part = self.path.with_name(self.path.name + ".part")
+            self.fh = open(part, "wb")
             self._write(_header_record(info, self.q0))
+            os.replace(part, self.path)
         self.frames = 0
 
     def _write(self, record: bytes) -> None:
