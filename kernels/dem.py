@@ -135,6 +135,10 @@ S_DONE = 7        # substeps done since begin_chunk
 S_ACTIVE = 8      # most particle slots in the listed blocks of one substep since begin_chunk
 S_THAW = 9        # 1: a frozen particle (DemSoil's frozen prefix) was asked to wake: the host repartitions
 N_STAT = 10
+# a rebuild's sizes (DemSoil._sizes), passed from kernel to kernel in its compute graph
+SZ_ACTIVE = 0     # active particles (sort_by_bucket)
+SZ_ENTRIES = 1    # neighbour-list entries (count_neighbors)
+N_SIZES = 2
 
 # per-block partial sums (step): tool wrenches 0..6*MAX_TOOLS-1, then these
 PART_LOST_MASS = 6 * MAX_TOOLS
@@ -1069,11 +1073,12 @@ def bin_particles(lo: ti.i32, n: ti.i32, kin: KIN, flags: I32_1, frozen: I32_1, 
 
 @ti.kernel
 def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: I32_1, order: I32_1,
-                   mask: ti.i32, live_mask: ti.i32) -> ti.i32:
+                   mask: ti.i32, live_mask: ti.i32, sizes: I32_1):
     """Counting sort of particles lo..n (serial, so the order inside a bucket is the old order: deterministic).
 
     starts[b]..starts[b+1] are the sorted slots of bucket b; order[sorted slot] = old index. With lo > 0 only the
-    live part of the table is sorted (the frozen prefix keeps its slots). Returns the number of active particles.
+    live part of the table is sorted (the frozen prefix keeps its slots). sizes[SZ_ACTIVE] = the number of active
+    particles (an array, not a return value, so that a compute graph can pass it on to count_neighbors).
     """
     half = mask + 1
     k0 = 0
@@ -1090,7 +1095,7 @@ def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: 
         key = bucket[i]
         order[counts[key]] = i
         counts[key] += 1
-    return starts[half + live_mask + 1]
+    sizes[SZ_ACTIVE] = starts[half + live_mask + 1]
 
 
 @ti.kernel
@@ -1243,12 +1248,13 @@ def _still_around(x_i, moved: ti.template(), prm: ti.template(), mask, live_mask
 
 
 @ti.kernel
-def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1,
+def count_neighbors(lo: ti.i32, n_frozen: ti.i32, sizes: I32_1, kin: KIN, prop: PROP, cell: I64_1, starts: I32_1,
                     nbr_off: I32_1, prm: F64_1, mask: ti.i32, live_mask: ti.i32, keep_still: ti.i32, moved: I32_1,
-                    order: I32_1, old_off: I32_1, kept: I32_1) -> ti.i32:
-    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i (i in lo..n_act) found
-    through the half stencil (a half list: each pair once, held by one of the two); then the prefix sum (nbr_off[i]
-    is where i's list starts; nbr_off[lo] is kept). Returns the entry count.
+                    order: I32_1, old_off: I32_1, kept: I32_1):
+    """nbr_off[i + 1] = number of particles within r_i + r_j + cohesion range + skin of i (i in lo..n_act,
+    n_act = sizes[SZ_ACTIVE], as sort_by_bucket left it) found through the half stencil (a half list: each pair
+    once, held by one of the two); then the prefix sum (nbr_off[i] is where i's list starts; nbr_off[lo] is kept).
+    sizes[SZ_ENTRIES] = the entry count.
 
     A frozen particle lists frozen partners only; a live one lists the live partners of its half stencil and every
     frozen partner around it (the pairs between the two are held by the live side, so the frozen lists never
@@ -1258,6 +1264,7 @@ def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop:
     build keeps its old list (kept[i] = 1): the same particles at the same places, found in the same order (the
     sort keeps the order within a cell), so the search would give exactly that list. A sleeping bed is then not
     searched again whenever the soil at the tool needs new lists."""
+    n_act = sizes[SZ_ACTIVE]
     if lo == 0:
         nbr_off[0] = 0
     for i in range(lo, n_act):
@@ -1282,7 +1289,7 @@ def count_neighbors(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, kin: KIN, prop:
     ti.loop_config(serialize=True)
     for i in range(lo, n_act):
         nbr_off[i + 1] += nbr_off[i]
-    return nbr_off[n_act]
+    sizes[SZ_ENTRIES] = nbr_off[n_act]
 
 
 @ti.func

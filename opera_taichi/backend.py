@@ -96,3 +96,49 @@ def _example_arg(annotation):
     if annotation in (ti.i32, ti.i64, ti.u32, ti.u64, ti.i8, ti.i16, ti.u8, ti.u16):
         return 0
     raise TypeError(f"no example argument for {annotation!r}")
+
+
+class KernelSequence:
+    """Ndarray kernels run in order, their arguments bound by name at each run: one compute graph where the backend
+    builds one (one launch from Python, the arguments set in C++: a direct launch costs ~90 us of Python, about as
+    much as a small rebuild's kernels take), else one launch each, the same kernels in the same order.
+
+    steps: (kernel, argument names) in order; an array one kernel writes and the next reads goes under one name.
+    run(args): args maps every name to an ndarray or a Python int or float (the kernels' annotations give the
+    types)."""
+
+    def __init__(self, steps):
+        self.steps = [(kernel, tuple(names)) for kernel, names in steps]
+        self.graph = None
+        try:
+            symbols, builder = {}, ti.graph.GraphBuilder()
+            for kernel, names in self.steps:
+                annotations = [a.annotation for a in kernel._primal.arguments]
+                if len(annotations) != len(names):
+                    raise TypeError(f"{kernel.__name__}: {len(annotations)} arguments, {len(names)} names")
+                for name, annotation in zip(names, annotations):
+                    symbols.setdefault(name, _graph_arg(name, annotation))
+                builder.dispatch(kernel, *(symbols[name] for name in names))
+            self.graph = builder.compile()
+        except Exception:  # noqa: BLE001 - no graph on this backend or Taichi: launch the kernels one by one
+            self.graph = None
+
+    def run(self, args: dict) -> None:
+        if self.graph is not None:
+            self.graph.run(args)
+        else:
+            self.launch(args)
+
+    def launch(self, args: dict) -> None:
+        """The kernels launched one by one (where no graph could be built)."""
+        for kernel, names in self.steps:
+            kernel(*(args[name] for name in names))
+
+
+def _graph_arg(name: str, annotation):
+    kind = ti.graph.ArgKind
+    if isinstance(annotation, ti.types.ndarray_type.NdarrayType):
+        return ti.graph.Arg(kind.NDARRAY, name, dtype=annotation.dtype, ndim=annotation.ndim)
+    if annotation in (ti.f32, ti.f64, ti.i32, ti.i64):
+        return ti.graph.Arg(kind.SCALAR, name, annotation)
+    raise TypeError(f"{name}: no compute-graph argument for {annotation!r}")

@@ -25,7 +25,7 @@ from dataclasses import asdict
 import numpy as np
 import taichi as ti
 
-from .backend import current_arch, host_view, precompile
+from .backend import KernelSequence, current_arch, host_view, precompile
 from .errors import DivergenceError, UserError
 from .geometry import quat_to_matrix
 from .kernels import dem
@@ -169,6 +169,46 @@ def _chunk_graph(count: int, serial: bool):
     return _GRAPHS[key]
 
 
+# A rebuild as two runs of kernels (one compute graph each on the CPU): sort the particles and count their lists;
+# then, once the host has made room for the entries, fill the lists, reverse them and mark the next substep's
+# blocks. Names ending in _out are the spare buffers the host swaps in after each run.
+_BIN = ("lo", "n", "kin", "flags", "freeze", "use_frozen", "cell", "bucket", "counts", "prm", "mask", "live_mask")
+_SORT = ("lo", "n", "bucket", "counts", "starts", "order", "mask", "live_mask", "sizes")
+_MOVED = ("lo", "n", "n_listed", "kin", "flags", "x_ref", "bucket", "order", "order_inv", "moved", "prm", "mask",
+          "live_mask")
+_GATHER = ("lo", "n", "order", "kin", "kin_out", "prop", "prop_out", "flags", "flags_out", "surf_id", "surf_id_out",
+           "surf_h", "surf_h_out", "cell", "cell_out")
+_COUNT = ("lo", "n_frozen", "sizes", "kin_out", "prop_out", "cell_out", "starts", "nbr_off_out", "prm", "mask",
+          "live_mask", "keep", "moved", "order", "nbr_off", "kept")
+_FILL = ("lo", "n_frozen", "n_act", "kin", "prop", "cell", "starts", "order", "nbr_off", "nbr_j", "nbr_h",
+         "nbr_off_out", "nbr_j_out", "nbr_h_out", "x_ref", "prm", "mask", "live_mask", "kept", "order_inv")
+_REVERSE = ("lo", "n_frozen", "n_act", "nbr_off_out", "nbr_j_out", "rev_off", "rev_pos", "scratch")
+_REV_HOLDER = ("lo", "n_act", "nbr_off_out", "rev_pos", "rev_holder", "scratch")
+_AWAKE = ("n_frozen", "n_act", "block", "kin", "surf_id", "prm", "blk_hot", "blk_box", "nbr_off_out", "nbr_j_out",
+          "rev_off", "rev_holder", "tool_gap")
+
+
+def _rebuild_steps(which: str) -> KernelSequence:
+    """sort: bin, sort, gather, count; sort_keep: the same, finding the cells where anything moved (the lists of
+    still neighbourhoods are kept); lists: fill, reverse, blocks. Built once per Taichi runtime."""
+    runtime = id(ti.lang.impl.get_runtime().prog)
+    if _REBUILDS.get("runtime") != runtime:
+        _REBUILDS.clear()
+        _REBUILDS["runtime"] = runtime
+    if which not in _REBUILDS:
+        steps = {"sort": [(dem.bin_particles, _BIN), (dem.sort_by_bucket, _SORT),
+                          (dem.gather_particles, _GATHER), (dem.count_neighbors, _COUNT)],
+                 "sort_keep": [(dem.bin_particles, _BIN), (dem.sort_by_bucket, _SORT),
+                               (dem.mark_moved_cells, _MOVED), (dem.gather_particles, _GATHER),
+                               (dem.count_neighbors, _COUNT)],
+                 "lists": [(dem.fill_neighbors, _FILL), (dem.build_reverse, _REVERSE),
+                           (dem.fill_rev_holder, _REV_HOLDER), (dem.mark_awake_blocks, _AWAKE)]}[which]
+        _REBUILDS[which] = KernelSequence(steps)
+    return _REBUILDS[which]
+
+
+_REBUILDS: dict = {}
+
 # the kernels a run launches outside the substeps: rebuilds, the frozen prefix's partition, the observers' sums
 WARM_KERNELS = ("bin_particles", "sort_by_bucket", "mark_moved_cells", "gather_particles", "count_neighbors",
                 "fill_neighbors", "build_reverse", "fill_rev_holder", "mark_awake_blocks", "copy_i32", "mark_frozen",
@@ -257,6 +297,8 @@ class DemSoil:
         self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)  # written by end_chunk, read once per run of substeps
         # (zero-copy views of both on the CPU; None on a GPU, where they are copied)
         self._tools_in_view, self._report_view = host_view(self._tools_in), host_view(self._report)
+        self._sizes = ti.ndarray(ti.i32, dem.N_SIZES)  # a rebuild's counts (dem.SZ_*), read once per rebuild
+        self._sizes_view = host_view(self._sizes)
         self._allocate(0)
         if self.beds:
             self._build_beds(settle_time)
@@ -577,7 +619,8 @@ class DemSoil:
         else:
             self._rebuild_all()
         self._lists_built = True
-        self._blocks_changed()
+        if not self.n_act:
+            self._blk_hot.fill(1)  # (the lists' kernels marked the blocks of the particles there are)
 
     def _swap_particles(self) -> None:
         self._kin, self._kin2 = self._kin2, self._kin
@@ -587,12 +630,31 @@ class DemSoil:
         self._surf_h, self._surf_h2 = self._surf_h2, self._surf_h
         self._cell, self._cell2 = self._cell2, self._cell
 
-    def _list_neighbors(self, lo: int, n_act: int, keep: bool) -> None:
-        """Count and fill the lists of particles lo..n_act into the spare list buffers, swap, reverse lists."""
+    def _rebuild_args(self, lo: int, n: int, keep: bool) -> dict:
+        """The rebuild kernels' arguments by name (_REBUILD_STEPS): `*_out` the spare buffers they write into."""
+        return dict(lo=int(lo), n=int(n), n_frozen=int(self.n_frozen), n_listed=int(self.n_act), n_act=0,
+                    keep=int(keep), use_frozen=0,
+                    kin=self._kin, kin_out=self._kin2, prop=self._prop, prop_out=self._prop2, flags=self._flags,
+                    flags_out=self._flags2, surf_id=self._surf_id, surf_id_out=self._surf_id2, surf_h=self._surf_h,
+                    surf_h_out=self._surf_h2, cell=self._cell, cell_out=self._cell2, freeze=self._freeze,
+                    bucket=self._bucket, counts=self._counts, starts=self._starts, order=self._order,
+                    order_inv=self._order_inv, moved=self._moved, kept=self._kept, x_ref=self._x_ref, prm=self._prm,
+                    mask=self._mask, live_mask=self._live_mask, sizes=self._sizes, nbr_off=self._nbr_off,
+                    nbr_off_out=self._nbr_off2, nbr_j=self._nbr_j, nbr_j_out=self._nbr_j2, nbr_h=self._nbr_h,
+                    nbr_h_out=self._nbr_h2, rev_off=self._rev_off, rev_pos=self._rev_pos,
+                    rev_holder=self._rev_holder, scratch=self._scratch, block=self._block, blk_hot=self._blk_hot,
+                    blk_box=self._blk_box, tool_gap=self._tool_gap)
+
+    def _read_sizes(self) -> tuple[int, int]:
+        """(active particles, list entries) as the last sort and count left them."""
+        sizes = self._sizes_view if self._sizes_view is not None else self._sizes.to_numpy()
+        return int(sizes[dem.SZ_ACTIVE]), int(sizes[dem.SZ_ENTRIES])
+
+    def _list_neighbors(self, lo: int) -> None:
+        """After count_neighbors (the lists of particles lo..n_act counted into the spare offsets): grow the spare
+        lists if they are short, fill them, swap, reverse lists, and the blocks of the next substep."""
         nf = self.n_frozen
-        entries = dem.count_neighbors(lo, nf, n_act, self._kin, self._prop, self._cell, self._starts, self._nbr_off2,
-                                      self._prm, self._mask, self._live_mask, int(keep), self._moved, self._order,
-                                      self._nbr_off, self._kept)
+        n_act, entries = self._read_sizes()
         if entries > self._nbr_j2.shape[0]:
             # a denser packing than the lists were sized for: grow the spare lists (the old ones stay intact), and
             # keep what the frozen prefix's entries and reverse slots hold
@@ -608,15 +670,14 @@ class DemSoil:
                 dem.copy_i32(frozen_slots, self._rev_holder, rev_holder)
             self._nbr_j2, self._nbr_h2, self._rev_pos, self._rev_holder = nbr_j2, nbr_h2, rev_pos, rev_holder
             self._pair_out = ti.ndarray(dem.vec3f, (grown + 1, 2))
-        dem.fill_neighbors(lo, nf, n_act, self._kin, self._prop, self._cell, self._starts, self._order, self._nbr_off,
-                           self._nbr_j, self._nbr_h, self._nbr_off2, self._nbr_j2, self._nbr_h2, self._x_ref,
-                           self._prm, self._mask, self._live_mask, self._kept, self._order_inv)
+        args = self._rebuild_args(lo, self._n, keep=False)
+        args.update(n_act=n_act, block=dem.reduction_block(n_act - nf))  # (the blocks of the particles now active)
+        _rebuild_steps("lists").run(args)
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
-        dem.build_reverse(lo, nf, n_act, self._nbr_off, self._nbr_j, self._rev_off, self._rev_pos, self._scratch)
-        self.n_act = int(n_act)
-        self._entries = int(entries)
+        self.n_act = n_act
+        self._entries = entries
         self._rebuilt_from = lo
 
     @property
@@ -649,34 +710,19 @@ class DemSoil:
             while live_table < min(MORTON_TABLE_PER_PARTICLE * (n - nf), self._mask + 1):
                 live_table *= 2
             self._live_mask = live_table - 1
-        dem.bin_particles(0, n, self._kin, self._flags, self._freeze, int(nf > 0), self._cell, self._bucket,
-                          self._counts, self._prm, self._mask, self._live_mask)
-        n_act = dem.sort_by_bucket(0, n, self._bucket, self._counts, self._starts, self._order, self._mask,
-                                   self._live_mask)
-        dem.gather_particles(0, n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
-                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
-                             self._cell2)
-        self._swap_particles()
         self.n_frozen = nf
-        self._list_neighbors(0, n_act, keep=False)
+        args = self._rebuild_args(0, n, keep=False)
+        args["use_frozen"] = int(nf > 0)
+        _rebuild_steps("sort").run(args)
+        self._swap_particles()
+        self._list_neighbors(0)
         if nf:
             self._mirror_frozen()
 
     def _rebuild_live(self, keep: bool) -> None:
-        n, lo = self._n, self.n_frozen
-        dem.bin_particles(lo, n, self._kin, self._flags, self._freeze, 0, self._cell, self._bucket, self._counts,
-                          self._prm, self._mask, self._live_mask)
-        n_listed = self.n_act
-        n_act = dem.sort_by_bucket(lo, n, self._bucket, self._counts, self._starts, self._order, self._mask,
-                                   self._live_mask)
-        if keep:
-            dem.mark_moved_cells(lo, n, n_listed, self._kin, self._flags, self._x_ref, self._bucket, self._order,
-                                 self._order_inv, self._moved, self._prm, self._mask, self._live_mask)
-        dem.gather_particles(lo, n, self._order, self._kin, self._kin2, self._prop, self._prop2, self._flags,
-                             self._flags2, self._surf_id, self._surf_id2, self._surf_h, self._surf_h2, self._cell,
-                             self._cell2)
+        _rebuild_steps("sort_keep" if keep else "sort").run(self._rebuild_args(self.n_frozen, self._n, keep))
         self._swap_particles()
-        self._list_neighbors(lo, n_act, keep=keep)
+        self._list_neighbors(self.n_frozen)
 
     def _mirror_frozen(self) -> None:
         """The frozen prefix into the spare particle and list buffers (a rebuild of the live part swaps them in),

@@ -146,3 +146,18 @@ def test_divergence_is_reported_with_the_limit_that_tripped():
     with pytest.raises(DivergenceError, match=r"^soil diverged at t = 0.001 s: particle speed 40 m/s above the limit "
                                               r"30 m/s \(soil.max_speed\)$"):
         soil.advance(0.001)
+
+
+def test_a_rebuild_marks_the_blocks_of_the_particles_it_leaves_active():
+    """A rebuild ends by finding each block's box and whether it takes part in the next substep, in blocks sized
+    for the particles the rebuild leaves active (larger past 32,768): the same blocks as finding them afresh."""
+    from kernels import dem
+
+    soil = make_soil()
+    r = soil.micro.radius
+    soil.set_particles(random_cloud(np.random.default_rng(3), 40_000, (0.0, 0.0, 1.0), (0.85, 0.85, 0.85), r))
+    assert soil.n_act == 40_000 and soil._block > dem.MIN_STEP_BLOCK
+    hot, box = soil._blk_hot.to_numpy(), soil._blk_box.to_numpy()
+    soil._blocks_changed()
+    assert np.array_equal(hot, soil._blk_hot.to_numpy())
+    assert np.array_equal(box, soil._blk_box.to_numpy())

@@ -221,6 +221,28 @@ def test_serial_and_threaded_loops_give_the_same_bits(monkeypatch):
     assert np.array_equal(runs[0].impulses, runs[1].impulses)
 
 
+def test_a_rebuild_as_one_compute_graph_gives_the_bits_of_its_kernels_launched_one_by_one(monkeypatch):
+    """A rebuild runs its kernels as two compute graphs (one launch each from Python) where the backend builds them:
+    the same kernels in the same order as launching them one by one, so the same bits."""
+    from opera_taichi import dem_soil
+    from opera_taichi.backend import KernelSequence
+
+    runs = []
+    for graphs in (True, False):
+        if not graphs:
+            monkeypatch.setattr(KernelSequence, "run", KernelSequence.launch)
+        soil, _, _ = _compressed_dig(True, 1500)
+        if graphs:
+            assert all(dem_soil._rebuild_steps(w).graph is not None for w in ("sort", "sort_keep", "lists"))
+        runs.append(soil)
+    assert runs[0].rebuilds > 20 and runs[0].rebuilds == runs[1].rebuilds
+    a, b = (soil.get_state() for soil in runs)
+    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "x_ref"):
+        assert np.array_equal(a[name], b[name]), name
+    assert np.abs(runs[0].impulses).max() > 0
+    assert np.array_equal(runs[0].impulses, runs[1].impulses)
+
+
 def test_a_frozen_soil_digs_like_the_awake_soil_and_resumes_bit_for_bit(digs, freeze_any_bed, tmp_path):
     """The compressed dig with the soil far from the bucket frozen: the same mass to round-off, the trench within a
     grain radius of the awake soil's; and a state saved while part of the soil is frozen goes on bit for bit."""
