@@ -1162,9 +1162,12 @@ class DemSoil:
         Taichi's disk cache), so that a run's clock does not count them: their compute graph is built and run with
         no substep to do (mark_blocks lists nothing and clears S_RUN), which moves nothing. The rebuild and observer
         kernels are compiled without a launch: those a run first launches after its setup (the frozen partition's,
-        the observers') no longer compile on its clock."""
+        the observers') no longer compile on its clock. A big sleeping bed is partitioned here, as the first advance
+        would do it (the tools are where the first step finds them: the same bits)."""
         precompile(*(getattr(dem, name) for name in WARM_KERNELS))
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
+        if self._partition_stale():
+            self._rebuild()
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
         k = min(n_sub, CHUNK_MAX)
         serial = self._serial_cpu and self._active_slots < SERIAL_BELOW
