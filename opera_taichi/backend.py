@@ -111,16 +111,25 @@ class KernelSequence:
         self.steps = [(kernel, tuple(names)) for kernel, names in steps]
         self.graph = None
         try:
-            symbols, builder = {}, ti.graph.GraphBuilder()
-            for kernel, names in self.steps:
-                annotations = [a.annotation for a in kernel._primal.arguments]
-                if len(annotations) != len(names):
-                    raise TypeError(f"{kernel.__name__}: {len(annotations)} arguments, {len(names)} names")
-                for name, annotation in zip(names, annotations):
-                    symbols.setdefault(name, _graph_arg(name, annotation))
+            annotations = [[a.annotation for a in kernel._primal.arguments] for kernel, _ in self.steps]
+        except AttributeError:  # another Taichi: no annotations to build a graph from
+            return
+        symbols, types = {}, {}
+        for (kernel, names), kinds in zip(self.steps, annotations):
+            if len(kinds) != len(names):
+                raise TypeError(f"{kernel.__name__}: {len(kinds)} arguments, {len(names)} names")
+            for name, kind in zip(names, kinds):
+                if types.setdefault(name, _arg_type(kind)) != _arg_type(kind):
+                    raise TypeError(f"{kernel.__name__}: argument {name!r} is {_arg_type(kind)}, elsewhere "
+                                    f"{types[name]}")
+        try:
+            builder = ti.graph.GraphBuilder()
+            for (kernel, names), kinds in zip(self.steps, annotations):
+                for name, kind in zip(names, kinds):
+                    symbols.setdefault(name, _graph_arg(name, kind))
                 builder.dispatch(kernel, *(symbols[name] for name in names))
             self.graph = builder.compile()
-        except Exception:  # noqa: BLE001 - no graph on this backend or Taichi: launch the kernels one by one
+        except Exception:  # noqa: BLE001 - no graph on this backend: launch the kernels one by one
             self.graph = None
 
     def run(self, args: dict) -> None:
@@ -133,6 +142,15 @@ class KernelSequence:
         """The kernels launched one by one (where no graph could be built)."""
         for kernel, names in self.steps:
             kernel(*(args[name] for name in names))
+
+
+def _arg_type(annotation) -> str:
+    """An argument's type as text (two equal ndarray annotations are distinct objects that compare unequal)."""
+    if isinstance(annotation, ti.types.ndarray_type.NdarrayType):
+        return f"ndarray({_arg_type(annotation.dtype)}, ndim={annotation.ndim})"
+    if isinstance(annotation, MatrixType):
+        return f"matrix({annotation.get_shape()}, {annotation.dtype})"
+    return str(annotation)
 
 
 def _graph_arg(name: str, annotation):

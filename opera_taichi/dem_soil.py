@@ -148,8 +148,8 @@ def _chunk_graph(count: int, serial: bool):
     directly). Launching an ndarray kernel from Python costs ~20 us per argument, which would dominate small soils;
     a graph binds the arguments in C++, and one graph per rigid step launches from Python once. serial: the
     kernels whose particle loops run in the calling thread."""
-    runtime = id(ti.lang.impl.get_runtime().prog)
-    if _GRAPHS.get("runtime") != runtime:
+    runtime = ti.lang.impl.get_runtime().prog  # (held, not its id: a restarted Taichi may reuse an id)
+    if _GRAPHS.get("runtime") is not runtime:
         _GRAPHS.clear()
         _GRAPHS["runtime"] = runtime
     key = (count, serial)
@@ -191,8 +191,8 @@ _AWAKE = ("n_frozen", "n_act", "block", "kin", "surf_id", "prm", "blk_hot", "blk
 def _rebuild_steps(which: str) -> KernelSequence:
     """sort: bin, sort, gather, count; sort_keep: the same, finding the cells where anything moved (the lists of
     still neighbourhoods are kept); lists: fill, reverse, blocks. Built once per Taichi runtime."""
-    runtime = id(ti.lang.impl.get_runtime().prog)
-    if _REBUILDS.get("runtime") != runtime:
+    runtime = ti.lang.impl.get_runtime().prog
+    if _REBUILDS.get("runtime") is not runtime:
         _REBUILDS.clear()
         _REBUILDS["runtime"] = runtime
     if which not in _REBUILDS:
@@ -630,20 +630,29 @@ class DemSoil:
         self._surf_h, self._surf_h2 = self._surf_h2, self._surf_h
         self._cell, self._cell2 = self._cell2, self._cell
 
-    def _rebuild_args(self, lo: int, n: int, keep: bool) -> dict:
-        """The rebuild kernels' arguments by name (_REBUILD_STEPS): `*_out` the spare buffers they write into."""
-        return dict(lo=int(lo), n=int(n), n_frozen=int(self.n_frozen), n_listed=int(self.n_act), n_act=0,
-                    keep=int(keep), use_frozen=0,
-                    kin=self._kin, kin_out=self._kin2, prop=self._prop, prop_out=self._prop2, flags=self._flags,
-                    flags_out=self._flags2, surf_id=self._surf_id, surf_id_out=self._surf_id2, surf_h=self._surf_h,
-                    surf_h_out=self._surf_h2, cell=self._cell, cell_out=self._cell2, freeze=self._freeze,
-                    bucket=self._bucket, counts=self._counts, starts=self._starts, order=self._order,
-                    order_inv=self._order_inv, moved=self._moved, kept=self._kept, x_ref=self._x_ref, prm=self._prm,
-                    mask=self._mask, live_mask=self._live_mask, sizes=self._sizes, nbr_off=self._nbr_off,
-                    nbr_off_out=self._nbr_off2, nbr_j=self._nbr_j, nbr_j_out=self._nbr_j2, nbr_h=self._nbr_h,
-                    nbr_h_out=self._nbr_h2, rev_off=self._rev_off, rev_pos=self._rev_pos,
-                    rev_holder=self._rev_holder, scratch=self._scratch, block=self._block, blk_hot=self._blk_hot,
-                    blk_box=self._blk_box, tool_gap=self._tool_gap)
+    def _sort_args(self, lo: int, keep: bool) -> dict:
+        """The arguments of a rebuild's first run of kernels (bin, sort, gather, count) by name; `*_out` the spare
+        buffers they write into. What the sort changes (the active count, the blocks) is not among them."""
+        return dict(lo=int(lo), n=int(self._n), n_frozen=int(self.n_frozen), n_listed=int(self.n_act),
+                    keep=int(keep), use_frozen=0, kin=self._kin, kin_out=self._kin2, prop=self._prop,
+                    prop_out=self._prop2, flags=self._flags, flags_out=self._flags2, surf_id=self._surf_id,
+                    surf_id_out=self._surf_id2, surf_h=self._surf_h, surf_h_out=self._surf_h2, cell=self._cell,
+                    cell_out=self._cell2, freeze=self._freeze, bucket=self._bucket, counts=self._counts,
+                    starts=self._starts, order=self._order, order_inv=self._order_inv, moved=self._moved,
+                    kept=self._kept, x_ref=self._x_ref, prm=self._prm, mask=self._mask, live_mask=self._live_mask,
+                    sizes=self._sizes, nbr_off=self._nbr_off, nbr_off_out=self._nbr_off2)
+
+    def _lists_args(self, lo: int, n_act: int) -> dict:
+        """The arguments of its second run (fill, reverse, blocks), once the sort and count are read back and the
+        spare lists have room."""
+        return dict(lo=int(lo), n_frozen=int(self.n_frozen), n_act=int(n_act),
+                    block=dem.reduction_block(n_act - self.n_frozen), kin=self._kin, prop=self._prop,
+                    cell=self._cell, surf_id=self._surf_id, starts=self._starts, order=self._order,
+                    order_inv=self._order_inv, kept=self._kept, x_ref=self._x_ref, prm=self._prm, mask=self._mask,
+                    live_mask=self._live_mask, nbr_off=self._nbr_off, nbr_off_out=self._nbr_off2,
+                    nbr_j=self._nbr_j, nbr_j_out=self._nbr_j2, nbr_h=self._nbr_h, nbr_h_out=self._nbr_h2,
+                    rev_off=self._rev_off, rev_pos=self._rev_pos, rev_holder=self._rev_holder,
+                    scratch=self._scratch, blk_hot=self._blk_hot, blk_box=self._blk_box, tool_gap=self._tool_gap)
 
     def _read_sizes(self) -> tuple[int, int]:
         """(active particles, list entries) as the last sort and count left them."""
@@ -670,9 +679,7 @@ class DemSoil:
                 dem.copy_i32(frozen_slots, self._rev_holder, rev_holder)
             self._nbr_j2, self._nbr_h2, self._rev_pos, self._rev_holder = nbr_j2, nbr_h2, rev_pos, rev_holder
             self._pair_out = ti.ndarray(dem.vec3f, (grown + 1, 2))
-        args = self._rebuild_args(lo, self._n, keep=False)
-        args.update(n_act=n_act, block=dem.reduction_block(n_act - nf))  # (the blocks of the particles now active)
-        _rebuild_steps("lists").run(args)
+        _rebuild_steps("lists").run(self._lists_args(lo, n_act))
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
@@ -711,7 +718,7 @@ class DemSoil:
                 live_table *= 2
             self._live_mask = live_table - 1
         self.n_frozen = nf
-        args = self._rebuild_args(0, n, keep=False)
+        args = self._sort_args(0, keep=False)
         args["use_frozen"] = int(nf > 0)
         _rebuild_steps("sort").run(args)
         self._swap_particles()
@@ -720,7 +727,7 @@ class DemSoil:
             self._mirror_frozen()
 
     def _rebuild_live(self, keep: bool) -> None:
-        _rebuild_steps("sort_keep" if keep else "sort").run(self._rebuild_args(self.n_frozen, self._n, keep))
+        _rebuild_steps("sort_keep" if keep else "sort").run(self._sort_args(self.n_frozen, keep))
         self._swap_particles()
         self._list_neighbors(self.n_frozen)
 

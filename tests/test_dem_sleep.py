@@ -243,6 +243,39 @@ def test_a_rebuild_as_one_compute_graph_gives_the_bits_of_its_kernels_launched_o
     assert np.array_equal(runs[0].impulses, runs[1].impulses)
 
 
+def test_lists_grown_in_a_rebuild_keep_every_spring_and_frozen_entry(monkeypatch, freeze_any_bed):
+    """A rebuild that counts more pairs than its spare lists hold grows them between its two runs of kernels, copying
+    the frozen prefix's entries and reverse slots: a dig whose spare lists are cut to one entry before every third
+    rebuild (each of those grows them, with a frozen prefix or without) ends with the same particles, lists and
+    springs as the dig that never grew them, and had the same force at every step."""
+    import taichi as ti
+
+    from kernels import dem
+    from opera_taichi import dem_soil
+
+    list_neighbors = dem_soil.DemSoil._list_neighbors
+    calls, cuts, runs = [], [], []
+
+    def cutting(self, lo):
+        calls.append(lo)
+        if len(calls) % 3 == 0:
+            self._nbr_j2, self._nbr_h2 = ti.ndarray(ti.i32, 1), ti.ndarray(dem.vec6f, 1)
+            cuts.append(lo)
+        list_neighbors(self, lo)
+
+    for cut in (False, True):
+        if cut:
+            monkeypatch.setattr(dem_soil.DemSoil, "_list_neighbors", cutting)
+        soil, _, _ = _compressed_dig(True, 1500)
+        runs.append(soil)
+    assert len(cuts) > 20 and max(cuts) > 0 and min(cuts) == 0   # grown with a frozen prefix and without
+    a, b = (soil.get_state() for soil in runs)
+    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "x_ref"):
+        assert np.array_equal(a[name], b[name]), name
+    assert np.abs(runs[0].impulses).max() > 0
+    assert np.array_equal(runs[0].impulses, runs[1].impulses)
+
+
 def test_a_frozen_soil_digs_like_the_awake_soil_and_resumes_bit_for_bit(digs, freeze_any_bed, tmp_path):
     """The compressed dig with the soil far from the bucket frozen: the same mass to round-off, the trench within a
     grain radius of the awake soil's; and a state saved while part of the soil is frozen goes on bit for bit."""

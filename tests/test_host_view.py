@@ -87,3 +87,47 @@ def test_precompile_compiles_without_a_launch_and_skips_what_it_cannot_fit():
     assert np.array_equal(twice.to_numpy(), [3.0, 6.0])
     kernels = [getattr(dem, name) for name in dem_soil.WARM_KERNELS]
     assert precompile(*kernels) == len(kernels)
+
+
+@ti.kernel
+def _scale_into(k: ti.i32, src: ti.types.ndarray(ti.f64, 1), dst: ti.types.ndarray(ti.f64, 1)):
+    for i in range(src.shape[0]):
+        dst[i] = k * src[i] + dst[i]
+
+
+@ti.kernel
+def _count_above(limit: ti.f64, a: ti.types.ndarray(ti.f64, 1), out: ti.types.ndarray(ti.i32, 1)):
+    out[0] = 0
+    for i in range(a.shape[0]):
+        if a[i] > limit:
+            ti.atomic_add(out[0], 1)
+
+
+def test_a_kernel_sequence_runs_its_kernels_in_order_as_one_graph_or_one_by_one():
+    """backend.KernelSequence (a rebuild's kernels): the arguments bound by name at each run, an array one kernel
+    writes read by the next under one name; the compute graph and the launches one by one give the same result, and
+    a name given two types is refused when the sequence is built, not found by a wrong result."""
+    import pytest
+
+    from opera_taichi.backend import KernelSequence
+
+    if current_arch() is None:
+        init_taichi("cpu")
+    seq = KernelSequence([(_scale_into, ("k", "x", "y")), (_count_above, ("limit", "y", "count")),
+                          (_scale_into, ("k", "y", "x"))])
+    assert seq.graph is not None                       # the CPU builds graphs
+    results = []
+    for run in (seq.run, seq.launch):
+        x, y, count = ti.ndarray(ti.f64, 5), ti.ndarray(ti.f64, 5), ti.ndarray(ti.i32, 1)
+        x.from_numpy(np.arange(5.0))
+        y.from_numpy(np.ones(5))
+        run(dict(k=3, limit=6.5, x=x, y=y, count=count))
+        results.append((x.to_numpy(), y.to_numpy(), count.to_numpy()))
+    for (x, y, count) in results:
+        assert np.array_equal(y, 3 * np.arange(5.0) + 1)                    # y = 3 x + y, in that order ...
+        assert count[0] == 3                                               # ... counted after it (7, 10, 13) ...
+        assert np.array_equal(x, 3 * y + np.arange(5.0))                   # ... then x = 3 y + x
+    with pytest.raises(TypeError, match="'x'"):
+        KernelSequence([(_scale_into, ("k", "x", "y")), (_count_above, ("x", "y", "count"))])
+    with pytest.raises(TypeError, match="3 arguments, 2 names"):
+        KernelSequence([(_scale_into, ("k", "x"))])

@@ -97,8 +97,13 @@ class ReplayWriter:
         else:   # the header is written aside and renamed in: a reader of a live run never sees a torn header
             part = self.path.with_name(self.path.name + ".part")
             self.fh = open(part, "wb")
-            self._write(_header_record(info, self.q0))
-            os.replace(part, self.path)
+            try:
+                self._write(_header_record(info, self.q0))
+                os.replace(part, self.path)
+            except BaseException:
+                self.fh.close()
+                part.unlink(missing_ok=True)
+                raise
         self.frames = 0
 
     def _write(self, record: bytes) -> None:
