@@ -246,14 +246,15 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    edge, and 1.37 x at 8 across at 0.289 d. Had the whole excess been a force at the edge, the resultant would sit
    at 0.184 d and 0.243 d. If the soil's own pressure kept the FEE's linear shape, a force at the edge carries 13%
    of the draft (0.23 x and 0.18 x the FEE) and the rest of the excess acts over the face as that pressure does: a
-   stronger wedge as much as a layer under the edge. In windows of d/4 the draft jumps (stick-slip), and its high
-   windows are those with a low resultant: at 4 across 2.15 and 2.45 x at 0.245 and 0.233 d, against 1.25-1.70 x
-   at 0.32-0.39 d in the quiet ones; at 8 across 1.46-1.47 x at 0.256-0.258 d against 1.14-1.31 x at 0.32-0.33
-   d. Grains jam under the edge now and then, and the quiet draft is itself 1.3-1.7 x at 4 across. It grows with
-   travel (1.28 x over 0.25-0.75 d, 1.7-2.1 x from 1.5 d on) as the passive wall's thrust does at 5 grains across
-   H (above: 1.15 x at 0.2 H, 1.65 x at 0.5 H): the loose bed hardens as the wedge ahead of the tool compacts, more
-   at coarse resolution, and the blade's window measures the hardened cut. A tool law at the edge could remove the
-   jams, about 0.2 x of the FEE; the rest is the bulk's.
+   stronger wedge as much as a layer under the edge. The draft builds and drops in cycles of about d/3 of travel
+   (the wedge failing), and in windows of d/4 its high windows are those with a low resultant: at 4 across 2.15
+   and 2.45 x at 0.245 and 0.233 d, against 1.25-1.70 x at 0.32-0.39 d in the others; at 8 across 1.46-1.47 x at
+   0.256-0.258 d against 1.14-1.31 x at 0.32-0.33 d. As the force builds, the load gathers near the edge; between
+   the peaks the draft is itself 1.3-1.7 x at 4 across. It grows with travel (1.28 x over 0.25-0.75 d, 1.7-2.1 x
+   from 1.5 d on) as the passive wall's thrust does at 5 grains across H (above: 1.15 x at 0.2 H, 1.65 x at 0.5
+   H): the loose bed hardens as the wedge ahead of the tool compacts, more at coarse resolution, and the blade's
+   window measures the hardened cut. A tool law at the edge could remove at most the force near the edge, about
+   0.2 x of the FEE; the rest is the bulk's.
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
