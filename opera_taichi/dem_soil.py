@@ -1173,6 +1173,8 @@ class DemSoil:
         would do it (the tools are where the first step finds them: the same bits)."""
         precompile(*(getattr(dem, name) for name in WARM_KERNELS))
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
+        for which in ("sort", "sort_keep", "lists"):
+            _rebuild_steps(which)  # (the rebuilds' graphs: a live rebuild's is first needed during the run)
         if self._partition_stale():
             self._rebuild()
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
