@@ -276,6 +276,33 @@ def test_lists_grown_in_a_rebuild_keep_every_spring_and_frozen_entry(monkeypatch
     assert np.array_equal(runs[0].impulses, runs[1].impulses)
 
 
+def test_a_sleeping_bed_partitioned_in_the_setup_digs_as_when_partitioned_at_its_first_step(monkeypatch,
+                                                                                               freeze_any_bed):
+    """warm_up partitions a big sleeping bed while the simulation sets up, where the tools already stand, which the
+    first step did before: the dig after it is the same, bit for bit, as with the partition left to the first step."""
+    from opera_taichi import dem_soil
+
+    warm_up = dem_soil.DemSoil.warm_up
+    frozen_after_setup, runs = [], []
+    for in_setup in (True, False):
+        def recording_warm_up(self, duration, in_setup=in_setup):
+            if not in_setup:  # (the partition left to the first step, as before)
+                self._partition_stale = lambda: False
+            warm_up(self, duration)
+            self.__dict__.pop("_partition_stale", None)
+            frozen_after_setup.append(self.n_frozen)
+
+        monkeypatch.setattr(dem_soil.DemSoil, "warm_up", recording_warm_up)
+        soil, _, _ = _compressed_dig(True, 1500)
+        runs.append(soil)
+    assert frozen_after_setup[0] > 0 and frozen_after_setup[1] == 0
+    a, b = (soil.get_state() for soil in runs)
+    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "x_ref"):
+        assert np.array_equal(a[name], b[name]), name
+    assert np.abs(runs[0].impulses).max() > 0
+    assert np.array_equal(runs[0].impulses, runs[1].impulses)
+
+
 def test_a_frozen_soil_digs_like_the_awake_soil_and_resumes_bit_for_bit(digs, freeze_any_bed, tmp_path):
     """The compressed dig with the soil far from the bucket frozen: the same mass to round-off, the trench within a
     grain radius of the awake soil's; and a state saved while part of the soil is frozen goes on bit for bit."""
