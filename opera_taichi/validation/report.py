@@ -157,9 +157,11 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    seeds: single runs spread by about 15%). Nor is it the plane-strain slab or a packing that crystallises (a90
    d0.3 in plane strain at 4 grains across, `--resolution 4`, 1.81 x on seed 0 and 1.82 x on seed 1): a slab 16
    and 32 grains wide read 1.98 and 1.90 x, the pit floor 2 d below the edge instead of d 1.76 x, radii spread by
-   +-20% and +-30% instead of +-10% 1.87 and 1.84 x. Nor does a shift of the micro-parameters pass the blade with
-   the wall: at rake 90 and delta 0 both have Rankine's reference, and the steady cut reads 1.6 x the wall's peak
-   at the default resolution, a ratio that a calibration would have to remove, not a level to lower.
+   +-20% and +-30% instead of +-10% 1.87 and 1.84 x. Nor is it soil held on the smooth face (a dead zone): the
+   draft, 5,017 N/m on seed 0, is the FEE's for a face with 16 deg of friction (4,948 N/m), whose soil would push
+   the blade up by 1,420 N/m; it is pushed up by 390 N/m. Nor does a shift of the micro-parameters pass the blade
+   with the wall: at rake 90 and delta 0 both have Rankine's reference, and the steady cut reads 1.6 x the wall's
+   peak at the default resolution, a ratio that a calibration would have to remove, not a level to lower.
    **The blade's over-strength is the rolling resistance's.** Without it most of it goes: a90 d0.2 w1.0 (2d of
    travel) with rolling resistance 0 reads 1.39 x at 3 grains across d (2.64 x with the default 0.3) and 0.99 x at
    the default 6 (1.74 x); at a90 d0.3 w1.5, 3 grains, 0 / 0.1 / 0.3 read 1.42-1.44 / 1.69-1.78 / 2.45-2.71 x (two
