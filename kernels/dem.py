@@ -1211,11 +1211,14 @@ FULL_STENCIL = tuple((dx, dy, dz) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for 
 
 
 @ti.kernel
-def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I32_1, x_ref: REF, bucket: I32_1,
-                     order: I32_1, order_inv: I32_1, moved: I32_1, prm: F64_1, mask: ti.i32, live_mask: ti.i32):
-    """Between bin/sort and the gather of the live part (lo..n), for a rebuild that keeps the lists of still
-    neighbourhoods: moved[b] = 1 for each live bucket that holds a cell a listed particle left, entered or moved in
-    since the last build (or left the domain from); order_inv[old index] = new index."""
+def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I32_1, x_ref: REF, order: I32_1,
+                     order_inv: I32_1, moved: I32_1, prm: F64_1, mask: ti.i32, live_mask: ti.i32, was_frozen: ti.i32,
+                     freeze: I32_1, use_frozen: ti.i32):
+    """Between bin/sort and the gather of lo..n, for a rebuild that keeps the lists of still neighbourhoods:
+    moved[half + b] = 1 for each live-half bucket b that holds a cell a listed particle left, entered or moved in
+    since the last build (or left the domain from), or where a particle joins or leaves the frozen prefix (a
+    repartition: it was frozen when its index was below was_frozen, it is when use_frozen and freeze say so);
+    order_inv[old index] = new index."""
     half = mask + 1
     for b in range(half, half + live_mask + 2):
         moved[b] = 0
@@ -1226,12 +1229,19 @@ def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I
         x = kin[o, 0]
         if o >= n_listed:
             if flags[o] == 1:
-                moved[bucket[o]] = 1
+                moved[_live_bucket(x, prm, half, live_mask)] = 1
         elif flags[o] == 0 or x[0] != ref[0] or x[1] != ref[1] or x[2] != ref[2]:
-            moved[half + ti.cast(_morton(_cell_of(vec3(ref[0], ref[1], ref[2]), prm)) & ti.cast(live_mask, ti.i64),
-                                 ti.i32)] = 1
+            moved[_live_bucket(vec3(ref[0], ref[1], ref[2]), prm, half, live_mask)] = 1
             if flags[o] == 1:
-                moved[bucket[o]] = 1
+                moved[_live_bucket(x, prm, half, live_mask)] = 1
+        elif (o < was_frozen) != (use_frozen != 0 and freeze[o] == 1):
+            moved[_live_bucket(x, prm, half, live_mask)] = 1
+
+
+@ti.func
+def _live_bucket(x, prm: ti.template(), half, live_mask):
+    """The slot of moved (mark_moved_cells, _still_around) for the cell of x: its live-half bucket."""
+    return half + ti.cast(_morton(_cell_of(x, prm)) & ti.cast(live_mask, ti.i64), ti.i32)
 
 
 @ti.func
@@ -1260,10 +1270,11 @@ def count_neighbors(lo: ti.i32, n_frozen: ti.i32, sizes: I32_1, kin: KIN, prop: 
     frozen partner around it (the pairs between the two are held by the live side, so the frozen lists never
     change while they stay frozen).
 
-    keep_still = 1 (mark_moved_cells ran): a live particle none of whose 27 cells saw anything move since the last
-    build keeps its old list (kept[i] = 1): the same particles at the same places, found in the same order (the
-    sort keeps the order within a cell), so the search would give exactly that list. A sleeping bed is then not
-    searched again whenever the soil at the tool needs new lists."""
+    keep_still = 1 (mark_moved_cells ran): a particle none of whose 27 cells saw anything move, join or leave the
+    frozen prefix since the last build keeps its old list (kept[i] = 1): the same particles at the same places, found
+    in the same order (the sort keeps the order within a cell), so the search would give exactly that list. A
+    sleeping bed is then not searched again whenever the soil at the tool needs new lists, nor the frozen soil when
+    the prefix is partitioned anew."""
     n_act = sizes[SZ_ACTIVE]
     if lo == 0:
         nbr_off[0] = 0
@@ -1273,7 +1284,7 @@ def count_neighbors(lo: ti.i32, n_frozen: ti.i32, sizes: I32_1, kin: KIN, prop: 
         extra = prm[P_COH_D] + prm[P_SKIN]
         count = 0
         kept[i] = 0
-        if keep_still != 0 and i >= n_frozen:
+        if keep_still != 0:
             if _still_around(x_i, moved, prm, mask, live_mask):
                 kept[i] = 1
                 o_i = order[i]

@@ -174,8 +174,8 @@ def _chunk_graph(count: int, serial: bool):
 # blocks. Names ending in _out are the spare buffers the host swaps in after each run.
 _BIN = ("lo", "n", "kin", "flags", "freeze", "use_frozen", "cell", "bucket", "counts", "prm", "mask", "live_mask")
 _SORT = ("lo", "n", "bucket", "counts", "starts", "order", "mask", "live_mask", "sizes")
-_MOVED = ("lo", "n", "n_listed", "kin", "flags", "x_ref", "bucket", "order", "order_inv", "moved", "prm", "mask",
-          "live_mask")
+_MOVED = ("lo", "n", "n_listed", "kin", "flags", "x_ref", "order", "order_inv", "moved", "prm", "mask", "live_mask",
+          "was_frozen", "freeze", "use_frozen")
 _GATHER = ("lo", "n", "order", "kin", "kin_out", "prop", "prop_out", "flags", "flags_out", "surf_id", "surf_id_out",
            "surf_h", "surf_h_out", "cell", "cell_out")
 _COUNT = ("lo", "n_frozen", "sizes", "kin_out", "prop_out", "cell_out", "starts", "nbr_off_out", "prm", "mask",
@@ -524,6 +524,7 @@ class DemSoil:
         self._kept = nd(ti.i32, cap)
         self._moved = nd(ti.i32, 2 * table + 2)   # (two halves: the frozen prefix's cells, the live particles')
         self._lists_built = False
+        self._lists_keepable = False
         self._counts = nd(ti.i32, 2 * table + 1)
         self._starts = nd(ti.i32, 2 * table + 2)
         self._freeze = nd(ti.i32, cap)
@@ -599,6 +600,7 @@ class DemSoil:
             st[name] = np.concatenate([st[name], np.full(k, st[name][-1], st[name].dtype)])
         st["counters"] = np.array([n + k, n_act + k, e], dtype=np.int64)
         self.set_state(st)
+        self._lists_keepable = False  # (the new particles have no lists yet)
         self._rebuild()  # the new particles' pairs
 
     def _rebuild(self, keep_still: bool = False) -> None:
@@ -607,18 +609,21 @@ class DemSoil:
         keep_still: the lists were built by the last rebuild and only the motion since has made this one needed
         (not new or replaced particles): only the particles after the frozen prefix are rebuilt, and those around
         which nothing moved keep their lists (the same lists, without the search). Otherwise the whole soil is
-        rebuilt and partitioned anew (the frozen prefix: FREEZE_MIN)."""
+        rebuilt and partitioned anew (the frozen prefix: FREEZE_MIN), the lists of still neighbourhoods kept as
+        well unless particles or parameters changed since the last build."""
         n = self._n
         if n == 0:
             self.n_act = 0
             self.n_frozen = 0
             return
         self.rebuilds += 1
+        keep = self.keep_still_lists and self._lists_built and self._lists_keepable
         if keep_still and self._lists_built:
-            self._rebuild_live(keep=self.keep_still_lists)
+            self._rebuild_live(keep=keep)
         else:
-            self._rebuild_all()
+            self._rebuild_all(keep=keep)
         self._lists_built = True
+        self._lists_keepable = True
         if not self.n_act:
             self._blk_hot.fill(1)  # (the lists' kernels marked the blocks of the particles there are)
 
@@ -634,13 +639,13 @@ class DemSoil:
         """The arguments of a rebuild's first run of kernels (bin, sort, gather, count) by name; `*_out` the spare
         buffers they write into. What the sort changes (the active count, the blocks) is not among them."""
         return dict(lo=int(lo), n=int(self._n), n_frozen=int(self.n_frozen), n_listed=int(self.n_act),
-                    keep=int(keep), use_frozen=0, kin=self._kin, kin_out=self._kin2, prop=self._prop,
-                    prop_out=self._prop2, flags=self._flags, flags_out=self._flags2, surf_id=self._surf_id,
-                    surf_id_out=self._surf_id2, surf_h=self._surf_h, surf_h_out=self._surf_h2, cell=self._cell,
-                    cell_out=self._cell2, freeze=self._freeze, bucket=self._bucket, counts=self._counts,
-                    starts=self._starts, order=self._order, order_inv=self._order_inv, moved=self._moved,
-                    kept=self._kept, x_ref=self._x_ref, prm=self._prm, mask=self._mask, live_mask=self._live_mask,
-                    sizes=self._sizes, nbr_off=self._nbr_off, nbr_off_out=self._nbr_off2)
+                    keep=int(keep), use_frozen=0, was_frozen=int(self.n_frozen), kin=self._kin, kin_out=self._kin2,
+                    prop=self._prop, prop_out=self._prop2, flags=self._flags, flags_out=self._flags2,
+                    surf_id=self._surf_id, surf_id_out=self._surf_id2, surf_h=self._surf_h, surf_h_out=self._surf_h2,
+                    cell=self._cell, cell_out=self._cell2, freeze=self._freeze, bucket=self._bucket,
+                    counts=self._counts, starts=self._starts, order=self._order, order_inv=self._order_inv,
+                    moved=self._moved, kept=self._kept, x_ref=self._x_ref, prm=self._prm, mask=self._mask,
+                    live_mask=self._live_mask, sizes=self._sizes, nbr_off=self._nbr_off, nbr_off_out=self._nbr_off2)
 
     def _lists_args(self, lo: int, n_act: int) -> dict:
         """The arguments of its second run (fill, reverse, blocks), once the sort and count are read back and the
@@ -691,8 +696,10 @@ class DemSoil:
     def _scratch(self) -> int:
         return self._pair_out.shape[0] - 1
 
-    def _rebuild_all(self) -> None:
+    def _rebuild_all(self, keep: bool) -> None:
+        """keep: the lists of the particles around which nothing moved, joined or left the frozen prefix are kept."""
         n = self._n
+        was_frozen = self.n_frozen
         nf = 0
         if self.freeze_far and self.sleep and self._lists_built and self.skip_sleeping_blocks and n >= FREEZE_MIN:
             self._upload_tool_rows()
@@ -718,9 +725,9 @@ class DemSoil:
                 live_table *= 2
             self._live_mask = live_table - 1
         self.n_frozen = nf
-        args = self._sort_args(0, keep=False)
-        args["use_frozen"] = int(nf > 0)
-        _rebuild_steps("sort").run(args)
+        args = self._sort_args(0, keep=keep)
+        args.update(use_frozen=int(nf > 0), was_frozen=was_frozen)
+        _rebuild_steps("sort_keep" if keep else "sort").run(args)
         self._swap_particles()
         self._list_neighbors(0)
         if nf:
@@ -777,6 +784,7 @@ class DemSoil:
         """Upload the parameters. Who is asleep depends on them (P_SLEEP_STEPS): every block takes part in the next
         substep, so a particle the new values wake is integrated at once."""
         self._prm.from_numpy(prm)
+        self._lists_keepable = False  # (a list's reach may have changed: the next rebuild searches them all)
         if self._blk_hot is not None:
             self._blk_hot.fill(1)
             self._tool_gap.fill(-dem.HUGE)  # (a sleeping particle's reach may have changed)

@@ -150,9 +150,11 @@ def test_a_grain_dropped_on_a_frozen_bed_bounces_as_on_an_awake_one(freeze_any_b
     assert np.max(np.abs(frozen_z - awake_z)[window]) < 0.1 * 0.02
 
 
-def _compressed_dig(skip: bool, steps: int):
-    """The compressed dig for `steps` rigid steps, the shortcuts of a sleeping soil on (skip) or off; returns the soil
-    with what the shortcuts did: the mean fraction of blocks that took part and the lists kept at rebuilds."""
+def _compressed_dig(skip: bool, steps: int, keep: bool | None = None, repartitions: list | None = None):
+    """The compressed dig for `steps` rigid steps, the shortcuts of a sleeping soil on (skip) or off (keep: the lists
+    kept, by default as skip); returns the soil with what the shortcuts did: the mean fraction of blocks that took
+    part and the lists kept at rebuilds. repartitions: gets (particles, frozen before, frozen after, lists kept) of
+    each full rebuild."""
     from kernels import dem
     from opera_taichi.control import ScriptController
     from opera_taichi.simulation import Simulation
@@ -160,16 +162,25 @@ def _compressed_dig(skip: bool, steps: int):
     sets = [DIG[i + 1] for i in range(0, len(DIG), 2) if DIG[i] == "--set" and not DIG[i + 1].startswith("output")]
     sim = Simulation.from_scene(SCENE, sets + ["soil.sleep=true"])
     soil = sim.soil
-    soil.skip_sleeping_blocks = soil.keep_still_lists = skip
+    soil.skip_sleeping_blocks = skip
+    soil.keep_still_lists = skip if keep is None else keep
     kept, active = [], []
-    rebuild = soil._rebuild
+    rebuild, rebuild_all = soil._rebuild, soil._rebuild_all
 
     def counting_rebuild(keep_still=False):
         rebuild(keep_still)
-        if keep_still and skip:
+        if keep_still and soil.keep_still_lists:
             kept.append(int(soil._kept.to_numpy()[:soil.n_act].sum()))
 
+    def counting_rebuild_all(keep):
+        was = soil.n_frozen
+        rebuild_all(keep)
+        if repartitions is not None:
+            repartitions.append((soil.n_act, was, soil.n_frozen, int(soil._kept.to_numpy()[:soil.n_act].sum())
+                                 if keep else 0))
+
     soil._rebuild = counting_rebuild
+    soil._rebuild_all = counting_rebuild_all
     controller = ScriptController(sim.model)
     impulses = []
     for k in range(steps):
@@ -202,6 +213,28 @@ def test_skipping_sleeping_blocks_and_keeping_still_lists_change_no_bit():
     assert np.array_equal(a["stat"][:dem.S_RUN], b["stat"][:dem.S_RUN])
     assert np.abs(fast.impulses).max() > 0                 # the bucket dug ...
     assert np.array_equal(fast.impulses, full.impulses)    # ... with the same force at every step
+
+
+def test_a_repartition_keeps_the_still_lists_and_changes_no_bit(freeze_any_bed):
+    """The frozen prefix found anew keeps the lists of the particles around which nothing moved, joined or left the
+    prefix, as a live rebuild keeps those around which nothing moved: the dig's every particle, spring and list is
+    the same, bit for bit, as with every list searched. (Keeping the lists where a neighbour joined or left the
+    prefix fails this.)"""
+    from kernels import dem
+
+    kept_runs, searched_runs = [], []
+    fast, _, _ = _compressed_dig(True, 3000, keep=True, repartitions=kept_runs)
+    full, _, _ = _compressed_dig(True, 3000, keep=False, repartitions=searched_runs)
+    assert len(kept_runs) == len(searched_runs) >= 3
+    changed = [(n, kept) for n, was, now, kept in kept_runs if was > 0 and now > 0]
+    assert changed and max(kept for _, kept in changed) > 0        # partitions anew kept lists ...
+    assert all(kept < n for n, kept in changed)                    # ... and searched others
+    a, b = fast.get_state(), full.get_state()
+    for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "x_ref", "counters"):
+        assert np.array_equal(a[name], b[name]), name
+    assert np.array_equal(a["stat"][:dem.S_RUN], b["stat"][:dem.S_RUN])
+    assert np.abs(fast.impulses).max() > 0
+    assert np.array_equal(fast.impulses, full.impulses)
 
 
 def test_serial_and_threaded_loops_give_the_same_bits(monkeypatch):
