@@ -1234,7 +1234,7 @@ def mark_moved_cells(lo: ti.i32, n: ti.i32, n_listed: ti.i32, kin: KIN, flags: I
             moved[_live_bucket(vec3(ref[0], ref[1], ref[2]), prm, half, live_mask)] = 1
             if flags[o] == 1:
                 moved[_live_bucket(x, prm, half, live_mask)] = 1
-        elif (o < was_frozen) != (use_frozen != 0 and freeze[o] == 1):
+        elif (o < was_frozen) != (use_frozen != 0 and freeze[o] == 1):  # (freeze is set below n_listed only)
             moved[_live_bucket(x, prm, half, live_mask)] = 1
 
 

@@ -421,7 +421,7 @@ class DemSoil:
             full[:len(value)] = value
             target.from_numpy(full)
         self.n_act, self._entries = n_act, e
-        self._lists_built = True  # (the lists of a build, with their reference positions)
+        self._lists_built = self._lists_keepable = True  # (the lists of a build, with their reference positions)
         self.n_frozen = int(state["counters"][3]) if len(state["counters"]) > 3 else 0
         self._live_mask = int(state["counters"][4]) if len(state["counters"]) > 4 else self._mask
         if "partition" in state:

@@ -153,8 +153,8 @@ def test_a_grain_dropped_on_a_frozen_bed_bounces_as_on_an_awake_one(freeze_any_b
 def _compressed_dig(skip: bool, steps: int, keep: bool | None = None, repartitions: list | None = None):
     """The compressed dig for `steps` rigid steps, the shortcuts of a sleeping soil on (skip) or off (keep: the lists
     kept, by default as skip); returns the soil with what the shortcuts did: the mean fraction of blocks that took
-    part and the lists kept at rebuilds. repartitions: gets (particles, frozen before, frozen after, lists kept) of
-    each full rebuild."""
+    part and the lists kept at rebuilds. repartitions: gets (particles, frozen before, frozen after, lists kept, of
+    which frozen) of each full rebuild."""
     from kernels import dem
     from opera_taichi.control import ScriptController
     from opera_taichi.simulation import Simulation
@@ -176,8 +176,9 @@ def _compressed_dig(skip: bool, steps: int, keep: bool | None = None, repartitio
         was = soil.n_frozen
         rebuild_all(keep)
         if repartitions is not None:
-            repartitions.append((soil.n_act, was, soil.n_frozen, int(soil._kept.to_numpy()[:soil.n_act].sum())
-                                 if keep else 0))
+            kept_now = soil._kept.to_numpy() if keep else np.zeros(soil.n_act, np.int32)
+            repartitions.append((soil.n_act, was, soil.n_frozen, int(kept_now[:soil.n_act].sum()),
+                                 int(kept_now[:soil.n_frozen].sum())))
 
     soil._rebuild = counting_rebuild
     soil._rebuild_all = counting_rebuild_all
@@ -226,9 +227,9 @@ def test_a_repartition_keeps_the_still_lists_and_changes_no_bit(freeze_any_bed):
     fast, _, _ = _compressed_dig(True, 3000, keep=True, repartitions=kept_runs)
     full, _, _ = _compressed_dig(True, 3000, keep=False, repartitions=searched_runs)
     assert len(kept_runs) == len(searched_runs) >= 3
-    changed = [(n, kept) for n, was, now, kept in kept_runs if was > 0 and now > 0]
-    assert changed and max(kept for _, kept in changed) > 0        # partitions anew kept lists ...
-    assert all(kept < n for n, kept in changed)                    # ... and searched others
+    changed = [(n, kept, frozen) for n, was, now, kept, frozen in kept_runs if was > 0 and now > 0]
+    assert changed and max(frozen for _, _, frozen in changed) > 0  # partitions anew kept frozen lists ...
+    assert all(kept < n for n, kept, _ in changed)                  # ... and searched others
     a, b = fast.get_state(), full.get_state()
     for name in ("kin", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "x_ref", "counters"):
         assert np.array_equal(a[name], b[name]), name
