@@ -205,14 +205,15 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    0.67, 0: 1.15 / 1.10 / 0.69; with tan 40 deg (1.2 x) 0.04: 1.20 / 1.21 / 0.76, 0: 1.02 / 1.03 / 0.77 (and the
    runs above: the mapping 1.73 / 1.82 / 1.18, 0.05 1.25 / 1.33 / 0.84, 0.1 1.37 / - / 0.92, 0 1.05 / 1.17 /
    0.74). The blade passes from 0.05 down, where the wall falls under 0.8 x and the coarse sand heap (33 +- 2 deg)
-   to 16.0 deg (0.04, 1.2 x the friction) or flat (0). The wall's peak spreads by about 20% between single runs (1.18 and
-   1.44 x with the mapping), so a set at the edge of both gates would pass or fail by the seed. What the gates
-   meet is the steady cut's excess over the early peak, a hardening with travel that grows at coarse resolution,
-   not a level a calibration could lower. Nor would such a soil free the main job's machine: with rolling resistance
-   0.04 (`python cli.py run scenes/zx120_excavation.yaml --set soil.overrides.rolling_resistance=0.04`, one run of a
-   chaotic dig) the bucket's mean draft over the drag (8-16 s) fell from 24.8 to 16.3 kN, but the soil's upward
-   force on it rose from 15.3 to 23.6 kN, the cut went 0.98 m deep instead of 0.89, and the boom sat at its torque
-   limit for 30% of the run instead of 26% (peak force 103 against 114 kN).
+   to 16.0 deg (0.04, 1.2 x the friction) or flat (0). The wall's peak spreads by about 20% between single runs
+   (1.18 and 1.44 x with the mapping), so a set at the edge of both gates would pass or fail by the seed. What the
+   gates meet is the steady cut's excess over the early peak, a hardening with travel that grows at coarse
+   resolution, not a level a calibration could lower. Nor would such a soil free the main job's machine: with
+   rolling resistance 0.04 (`python cli.py run scenes/zx120_excavation.yaml --set
+   soil.overrides.rolling_resistance=0.04`, one run of a chaotic dig) the bucket's mean draft over the drag (8-16 s)
+   fell from 24.8 to 16.3 kN, but the soil's upward force on it rose from 15.3 to 23.6 kN, the cut went 0.98 m deep
+   instead of 0.89, and the boom sat at its torque limit for 30% of the run instead of 26% (peak force 103 against
+   114 kN).
    **Two grain models tried at 4 grains across, both left out: neither keeps the heap and lowers the draft.** At 4
    grains across (one run each, on seed 0 unless said, on a 2-vCPU Intel Xeon where the mapping read a90 1.81 x,
    the wall 1.44 x and the coarse sand heap 30.6 deg; a scratch copy, `validate-physics blade_cut|passive_wall
