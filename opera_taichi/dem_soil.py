@@ -142,16 +142,22 @@ def _substep_kernel(serial: bool):
     return dem.substep_serial if serial else dem.substep
 
 
+def _of_this_runtime(cache: dict) -> dict:
+    """`cache` emptied if Taichi was started anew since it was filled (its graphs belong to the old runtime)."""
+    runtime = ti.lang.impl.get_runtime().prog  # (held, not its id: a restarted Taichi may reuse an id)
+    if cache.get("runtime") is not runtime:
+        cache.clear()
+        cache["runtime"] = runtime
+    return cache
+
+
 def _chunk_graph(count: int, serial: bool):
     """Compute graph of `count` substeps (begin_chunk, count x substep, end_chunk), built
     once per Taichi runtime and count; None if the backend cannot build graphs (then the kernels are launched
     directly). Launching an ndarray kernel from Python costs ~20 us per argument, which would dominate small soils;
     a graph binds the arguments in C++, and one graph per rigid step launches from Python once. serial: the
     kernels whose particle loops run in the calling thread."""
-    runtime = ti.lang.impl.get_runtime().prog  # (held, not its id: a restarted Taichi may reuse an id)
-    if _GRAPHS.get("runtime") is not runtime:
-        _GRAPHS.clear()
-        _GRAPHS["runtime"] = runtime
+    _of_this_runtime(_GRAPHS)
     key = (count, serial)
     if key not in _GRAPHS:
         try:
@@ -191,10 +197,7 @@ _AWAKE = ("n_frozen", "n_act", "block", "kin", "surf_id", "prm", "blk_hot", "blk
 def _rebuild_steps(which: str) -> KernelSequence:
     """sort: bin, sort, gather, count; sort_keep: the same, finding the cells where anything moved (the lists of
     still neighbourhoods are kept); lists: fill, reverse, blocks. Built once per Taichi runtime."""
-    runtime = ti.lang.impl.get_runtime().prog
-    if _REBUILDS.get("runtime") is not runtime:
-        _REBUILDS.clear()
-        _REBUILDS["runtime"] = runtime
+    _of_this_runtime(_REBUILDS)
     if which not in _REBUILDS:
         steps = {"sort": [(dem.bin_particles, _BIN), (dem.sort_by_bucket, _SORT),
                           (dem.gather_particles, _GATHER), (dem.count_neighbors, _COUNT)],
