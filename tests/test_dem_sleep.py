@@ -238,6 +238,43 @@ def test_a_repartition_keeps_the_still_lists_and_changes_no_bit(freeze_any_bed):
     assert np.array_equal(fast.impulses, full.impulses)
 
 
+def test_a_tool_that_moves_past_its_clearance_asks_for_a_new_partition(freeze_any_bed):
+    """The frozen prefix holds while every tool's bounding sphere stays within its clearance to the frozen soil
+    (less half the freeze margin) of where it was at the partition, whichever way the tool moves or turns; a sphere
+    that moves further, or a tool switched on or off, asks for a new partition before the next substeps."""
+    from scipy.spatial.transform import Rotation
+
+    from kernels import dem
+
+    soil, _, _ = _compressed_dig(True, 400)
+    assert soil.n_frozen > 0 and not soil._partition_stale()
+    rows = soil._tools_host
+    saved = rows.copy()
+    t = int(np.flatnonzero(rows[:, dem.T_ON] > 0.0)[0])
+    allowed = soil._clearance[t] - 0.5 * soil._freeze_margin()
+    assert allowed > 0.0
+    then = soil._partition[t, 1:]
+    sphere = rows[t, dem.T_BS:dem.T_BS + 3]
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        rot = Rotation.from_rotvec(rng.uniform(-0.6, 0.6, 3)).as_matrix()  # the link turned: its sphere swings
+        for share, stale in ((0.98, False), (1.02, True)):
+            rows[t, dem.T_ROT:dem.T_ROT + 9] = rot.ravel()
+            rows[t, dem.T_POS:dem.T_POS + 3] = then + share * allowed * direction - rot @ sphere
+            assert soil._partition_stale() is stale, (direction, share)
+    rows[:] = saved
+    assert not soil._partition_stale()
+    other = (t + 1) % dem.MAX_TOOLS
+    rows[other, dem.T_ON] = 1.0  # a tool switched on, far away or not
+    assert soil._partition_stale()
+    rows[:] = saved
+    rows[t, dem.T_ON] = 0.0
+    assert soil._partition_stale()
+    rows[:] = saved
+
+
 def test_serial_and_threaded_loops_give_the_same_bits(monkeypatch):
     """A run of substeps loops serially when few particles take part and on the thread pool otherwise: each sum has
     a fixed order, so the choice changes no bit of the dig."""
