@@ -41,11 +41,12 @@ SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 # Frozen soil (soil.sleep): a full rebuild moves the particles that are asleep, farther than FREEZE_MARGIN beyond
 # every tool's bounding sphere and more than FREEZE_LAYERS contacts from anything awake to the front of the arrays;
 # the rebuilds that the moving soil needs then sort, gather and list only the particles after them. Worth the full
-# rebuilds it costs only in a big bed: below FREEZE_MIN frozen particles nothing is frozen. A frozen particle asked
+# rebuilds it costs only in a big bed (FREEZE_MIN) with enough of it frozen (FREEZE_FEWEST). A frozen particle asked
 # to wake, a tool's sphere come within FREEZE_MARGIN / 2 of the frozen soil, or new parameters repartition (a full
 # rebuild); with nothing frozen, a big bed tries again every FREEZE_RETRY s, or after FREEZE_SOON once most of
 # what was moving has fallen asleep.
-FREEZE_MIN = 8192
+FREEZE_MIN = 8192          # particles in the soil, at least, for any to freeze (the main job's 3,451 never do)
+FREEZE_FEWEST = 2048       # frozen particles, at least, in a partition (fewer: none frozen); docs/performance.md
 FREEZE_MARGIN = 0.5        # m, at least; and at least 4 x (r_max + skin + adhesion range)
 FREEZE_RETRY = 0.5         # s
 FREEZE_SOON = 0.05         # s: sooner when the substeps list less than half of what they listed at the last try
@@ -718,7 +719,7 @@ class DemSoil:
             self._partition = self._tool_spheres()
             self._partition_time = self.time
             self._slots_at_try = self._active_slots or self.n_act
-        if nf < FREEZE_MIN:
+        if nf < FREEZE_FEWEST:
             nf = 0
         self._repartition_due = False
         self._live_mask = self._mask

@@ -53,12 +53,13 @@ def test_sleeping_soil_digs_like_the_awake_soil(digs):
 
 @pytest.fixture
 def freeze_any_bed(monkeypatch):
-    """Freeze the far soil of beds of any size (by default only beds of FREEZE_MIN particles and more), and keep a
-    single layer of grains live around the moving ones (by default FREEZE_LAYERS: fewer repartitions), so that
-    small test beds freeze and thaw often."""
+    """Freeze the far soil of beds of any size (by default only beds of FREEZE_MIN particles and more, and at least
+    FREEZE_FEWEST of them), and keep a single layer of grains live around the moving ones (by default FREEZE_LAYERS:
+    fewer repartitions), so that small test beds freeze and thaw often."""
     from opera_taichi import dem_soil
 
     monkeypatch.setattr(dem_soil, "FREEZE_MIN", 0)
+    monkeypatch.setattr(dem_soil, "FREEZE_FEWEST", 0)
     monkeypatch.setattr(dem_soil, "FREEZE_LAYERS", 1)
 
 
@@ -73,6 +74,7 @@ def test_a_blade_cuts_sleeping_soil_with_the_same_draft(monkeypatch):
     with tempfile.TemporaryDirectory() as tmp:
         for sleep, freeze_min in (("false", dem_soil.FREEZE_MIN), ("true", 1 << 30), ("true", 0)):
             monkeypatch.setattr(dem_soil, "FREEZE_MIN", freeze_min)
+            monkeypatch.setattr(dem_soil, "FREEZE_FEWEST", min(freeze_min, dem_soil.FREEZE_FEWEST))
             out = Path(tmp) / f"{sleep}_{freeze_min}"
             assert main(["run", BLADE, "--quiet", "--out", str(out), "--set", f"soil.sleep={sleep}",
                          "--set", "soil.overrides.radius=0.04", "--set", "sim.duration=2.5",
