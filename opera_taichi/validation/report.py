@@ -202,8 +202,8 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    at most 1.56. At 4 grains across the ratio reads 1.3-1.8 (one run each, `validate-physics
    blade_cut|passive_wall --resolution 4` on seed 0 with the rolling resistance and the particle friction patched
    in a scratch copy; a90 / a60 delta20 / wall): rolling resistance 0.03 with the mapping's tan 35 deg 1.09 /
-   1.18 / 0.74; with tan 37.6 deg (1.1 x) 0.03: 1.14 / 1.16 / 0.67, 0: 1.15 / 1.10 / 0.69; with tan 40 deg (1.2 x) 0.04: 1.20 / 1.21 / 0.76, 0: 1.02 / 1.03 / 0.77 (and the
-   runs above: the mapping 1.73 / 1.82 / 1.18, 0.05 1.25 / 1.33 / 0.84, 0.1 1.37 / - / 0.92, 0 1.05 / 1.17 /
+   1.18 / 0.74; with tan 37.6 deg (1.1 x) 0.03: 1.14 / 1.16 / 0.67, 0: 1.15 / 1.10 / 0.69; with tan 40 deg
+   (1.2 x) 0.04: 1.20 / 1.21 / 0.76, 0: 1.02 / 1.03 / 0.77 (and the runs above: the mapping 1.73 / 1.82 / 1.18, 0.05 1.25 / 1.33 / 0.84, 0.1 1.37 / - / 0.92, 0 1.05 / 1.17 /
    0.74). The blade passes from 0.05 down, where the wall falls under 0.8 x and the coarse sand heap (33 +- 2 deg)
    to 16.0 deg (0.04, 1.2 x the friction) or flat (0). Under 1.56 the ratio reads only from 0.05 down, and there
    more particle friction lifts the wall over 0.8 x (2026-11-26, the same commands): with no rolling resistance and
