@@ -197,30 +197,29 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    friction 0.7 tan(phi) did at the default resolution: 1.25 x on the old metric); rolling resistance, which sets
    the heaps, cannot be lowered for the wall's sake.
    **The blade and the wall pass together at 4 grains across with no rolling resistance and more friction, a soil
-   that fails the blade at 8 and the heaps.** The two gates need the blade's steady cut (a90, d to 3d of travel)
-   at most 1.25 x the FEE's 2,769 N/m and the wall's early peak (up to 0.2 H) at least 0.8 x Rankine: a ratio of
-   at most 1.56. At 4 grains across the ratio reads 1.3-1.8 (one run each, `validate-physics
-   blade_cut|passive_wall --resolution 4` on seed 0 with the rolling resistance and the particle friction patched
-   in a scratch copy; a90 / a60 delta20 / wall): rolling resistance 0.03 with the mapping's tan 35 deg 1.09 /
-   1.18 / 0.74; with tan 37.6 deg (1.1 x) 0.03: 1.14 / 1.16 / 0.67, 0: 1.15 / 1.10 / 0.69; with tan 40 deg
-   (1.2 x) 0.04: 1.20 / 1.21 / 0.76, 0: 1.02 / 1.03 / 0.77 (and the runs above: the mapping 1.73 / 1.82 / 1.18, 0.05 1.25 / 1.33 / 0.84, 0.1 1.37 / - / 0.92, 0 1.05 / 1.17 /
-   0.74). The blade passes from 0.05 down, where the wall falls under 0.8 x and the coarse sand heap (33 +- 2 deg)
-   to 16.0 deg (0.04, 1.2 x the friction) or flat (0). Under 1.56 the ratio reads only from 0.05 down, and there
-   more particle friction lifts the wall over 0.8 x (2026-11-26, the same commands): with no rolling resistance and
-   1.3 / 1.4 x the friction (tan 42.3 / 44.4 deg) a90 read 1.08 / 1.09 x, a60 delta20 1.11 / 1.21 x and the wall
-   0.79 / 0.82 x, both gates passing at 1.4 x. But the same soil at 8 grains across read a90 0.82 x (the gate
-   wants 0.85-1.15 x), and without rolling resistance the sand heap spreads flat. The excess falls with resolution
-   faster than such a soil's strength does, so a calibration per resolution would take the rolling resistance
-   from 0 at 4 across to the mapping's 0.3 at 20, while the heap needs 0.3 at every resolution (and one grain size
-   serves both the cut and the heap the bucket spills). The wall's peak spreads by about 20% between single runs
-   (1.18 and 1.44 x with the mapping), so a set at the edge of both gates would pass or fail by the seed. The
-   column, the critical heights and the default-resolution gates were not run with these sets. Nor would a soil
-   weak enough for the blade free the main job's machine: with
-   rolling resistance 0.04 (`python cli.py run scenes/zx120_excavation.yaml --set
-   soil.overrides.rolling_resistance=0.04`, one run of a chaotic dig) the bucket's mean draft over the drag (8-16 s)
-   fell from 24.8 to 16.3 kN, but the soil's upward force on it rose from 15.3 to 23.6 kN, the cut went 0.98 m deep
-   instead of 0.89, and the boom sat at its torque limit for 30% of the run instead of 26% (peak force 103 against
-   114 kN).
+   that fails the blade at 8 and the heaps.** The two gates need the blade's steady cut (a90, d to 3d of travel) at
+   most 1.25 x the FEE's 2,769 N/m and the wall's early peak (up to 0.2 H) at least 0.8 x Rankine: a ratio of at most
+   1.56. At 4 grains across the ratio reads 1.3-1.8 (one run each, `validate-physics blade_cut|passive_wall
+   --resolution 4` on seed 0 with the rolling resistance and the particle friction patched in a scratch copy; a90 /
+   a60 delta20 / wall): rolling resistance 0.03 with the mapping's tan 35 deg 1.09 / 1.18 / 0.74; with tan 37.6 deg
+   (1.1 x) 0.03: 1.14 / 1.16 / 0.67, 0: 1.15 / 1.10 / 0.69; with tan 40 deg (1.2 x) 0.04: 1.20 / 1.21 / 0.76, 0: 1.02
+   / 1.03 / 0.77 (and the runs above: the mapping 1.73 / 1.82 / 1.18, 0.05 1.25 / 1.33 / 0.84, 0.1 1.37 / - / 0.92, 0
+   1.05 / 1.17 / 0.74). The blade passes from 0.05 down, where the wall falls under 0.8 x and the coarse sand heap
+   (33 +- 2 deg) to 16.0 deg (0.04, 1.2 x the friction) or flat (0). Under 1.56 the ratio reads only from 0.05 down,
+   and there more particle friction lifts the wall over 0.8 x (2026-11-26, the same commands): with no rolling
+   resistance and 1.3 / 1.4 x the friction (tan 42.3 / 44.4 deg) a90 read 1.08 / 1.09 x, a60 delta20 1.11 / 1.21 x
+   and the wall 0.79 / 0.82 x, both gates passing at 1.4 x. But the same soil at 8 grains across read a90 0.82 x (the
+   gate wants 0.85-1.15 x), and without rolling resistance the sand heap spreads flat. The excess falls with
+   resolution faster than such a soil's strength does, so a calibration per resolution would take the rolling
+   resistance from 0 at 4 across to the mapping's 0.3 at 20, while the heap needs 0.3 at every resolution (and one
+   grain size serves both the cut and the heap the bucket spills). The wall's peak spreads by about 20% between
+   single runs (1.18 and 1.44 x with the mapping), so a set at the edge of both gates would pass or fail by the seed.
+   The column, the critical heights and the default-resolution gates were not run with these sets. Nor would a soil
+   weak enough for the blade free the main job's machine: with rolling resistance 0.04 (`python cli.py run
+   scenes/zx120_excavation.yaml --set soil.overrides.rolling_resistance=0.04`, one run of a chaotic dig) the bucket's
+   mean draft over the drag (8-16 s) fell from 24.8 to 16.3 kN, but the soil's upward force on it rose from 15.3 to
+   23.6 kN, the cut went 0.98 m deep instead of 0.89, and the boom sat at its torque limit for 30% of the run instead
+   of 26% (peak force 103 against 114 kN).
    **Two grain models tried at 4 grains across, both left out: neither keeps the heap and lowers the draft.** At 4
    grains across (one run each, on seed 0 unless said, on a 2-vCPU Intel Xeon where the mapping read a90 1.81 x,
    the wall 1.44 x and the coarse sand heap 30.6 deg; a scratch copy, `validate-physics blade_cut|passive_wall
