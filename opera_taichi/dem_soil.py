@@ -613,8 +613,8 @@ class DemSoil:
         keep_still: the lists were built by the last rebuild and only the motion since has made this one needed
         (not new or replaced particles): only the particles after the frozen prefix are rebuilt, and those around
         which nothing moved keep their lists (the same lists, without the search). Otherwise the whole soil is
-        rebuilt and partitioned anew (the frozen prefix: FREEZE_MIN), the lists of still neighbourhoods kept as
-        well unless particles or parameters changed since the last build."""
+        rebuilt and partitioned anew (the frozen prefix: FREEZE_MIN, FREEZE_FEWEST), the lists of still
+        neighbourhoods kept as well unless particles or parameters changed since the last build."""
         n = self._n
         if n == 0:
             self.n_act = 0
@@ -763,7 +763,7 @@ class DemSoil:
     def _tool_spheres(self) -> np.ndarray:
         """(MAX_TOOLS, 4): each tool's on flag and the world centre of its bounding sphere (host rows)."""
         rows = self._tools_host
-        on = rows[:, dem.T_ON] > 0.0  # (vectorised: this runs before every rigid step of a frozen soil)
+        on = rows[:, dem.T_ON] > 0.0
         rot = rows[:, dem.T_ROT:dem.T_ROT + 9].reshape(-1, 3, 3)
         centres = rows[:, dem.T_POS:dem.T_POS + 3] + (rot @ rows[:, dem.T_BS:dem.T_BS + 3, None])[:, :, 0]
         return np.where(on[:, None], np.column_stack([np.ones(len(rows)), centres]), 0.0)
