@@ -1,7 +1,7 @@
 """The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
 
     python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
-                                  [--duration 25] [--repeat 1]
+                                  [--duration 25] [--repeat 1] [--spin-wait]
 
 For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
 `--site` adds scenes/zx120_site.yaml (the same dig in a 20 m x 20 m x 1 m bed) at 8 cm, and with the 8 cm main job
@@ -13,7 +13,8 @@ after the first run of a size; run the command twice for a cold cache). A table 
   equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade)
 
 `--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
-host's speed drifts by 10% from run to run). Report the host: `lscpu | grep 'Model name'` and whether other work
+host's speed drifts by 10% from run to run). `--spin-wait` runs with sim.spin_wait (the other cores kept running
+while the soil steps; docs/performance.md). Report the host: `lscpu | grep 'Model name'` and whether other work
 shared it.
 """
 from __future__ import annotations
@@ -59,14 +60,14 @@ def fee_draft(model) -> float:
                              cohesion=bulk.cohesion).draft
 
 
-def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float) -> dict:
+def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float, spin_wait: bool = False) -> dict:
     from opera_taichi.model import build_model
     from opera_taichi.recorders import read_csv_columns
     from opera_taichi.runner import run_scene
     from opera_taichi.scene import load_scene
 
     sets = [f"soil.overrides.radius={radius}", f"soil.sleep={str(sleep).lower()}", "output.plots=false",
-            f"sim.duration={duration}", f"sim.arch={arch}"]
+            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={str(spin_wait).lower()}"]
     scene = load_scene(scene_path, sets)
     awake = AwakeCount()
     with tempfile.TemporaryDirectory() as tmp:
@@ -92,6 +93,7 @@ def main() -> int:
     parser.add_argument("--arch", default="cpu")
     parser.add_argument("--duration", type=float, default=25.0)
     parser.add_argument("--repeat", type=int, default=1, help="runs per row: the median RTF and its range")
+    parser.add_argument("--spin-wait", action="store_true", help="sim.spin_wait: keep the other cores running")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
     runs = [(ROOT / "scenes" / "zx120_excavation.yaml", float(r)) for r in args.radii.split(",")]
@@ -102,10 +104,13 @@ def main() -> int:
     print("| scene | radius m | sleep | particles | awake (mean) | RTF | RTF range | M particle-steps/s "
           "| draft kN (8-16 s) | FEE kN | draft/FEE |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
+    if args.spin_wait:
+        print("(sim.spin_wait on)\n")
     medians = {}
     for path, radius in runs:
         for sleep in sleeps:
-            tries = sorted((one(path, radius, sleep, args.arch, args.duration) for _ in range(args.repeat)),
+            tries = sorted((one(path, radius, sleep, args.arch, args.duration, args.spin_wait)
+                            for _ in range(args.repeat)),
                            key=lambda row: row["rtf"])
             r = tries[len(tries) // 2]  # the median run (the upper one of an even count)
             medians[(path.stem, radius, sleep)] = r["rtf"]

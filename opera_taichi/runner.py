@@ -128,6 +128,7 @@ def _engine_block(sim) -> dict:
         import taichi as ti
 
         data["cpu_threads"] = int(ti.lang.impl.current_cfg().cpu_max_num_threads)
+        data["spin_wait_helpers"] = sim.spin_wait_helpers
     return data
 
 
@@ -279,7 +280,7 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
                 raise UserError(f"--resume: {out} has no checkpoint (run it with --checkpoint-every SECONDS)")
             progress.phase("preparing: machine, soil bed (poured and settled once, then cached), kernels")
             sim = Simulation(model, arch=arch, build_beds=ckpt is None, quiet=quiet,
-                             on_settle=progress.settling)
+                             on_settle=progress.settling, spin_wait=scene.sim.spin_wait)
             states = {}
             if resume:
                 states = sim.load_checkpoint(ckpt).get("observers", {})

@@ -300,6 +300,11 @@ class SimConfig(_Model):
         None, description="Soil substep; null = from the soil's stability limit. Must be <= dt; a value "
                           "above the soil's stability limit is rejected when the soil is built.")
     arch: _choice("cpu", "cuda", "auto") = Field("cpu", description="Taichi backend; `--arch` overrides it.")
+    spin_wait: Bool = Field(
+        False, description="On the CPU, keep the other cores running while the soil steps (a lowest-priority helper "
+                           "process per other core spins; docs/performance.md): faster where an idle core sleeps "
+                           "deeply, as on cloud VMs (5-13% on a 2-vCPU one), at the cost of those cores' idle time. "
+                           "Same results.")
     seed: Annotated[int, BeforeValidator(_NumberRule(ge=0, le=2**32 - 1, integer=True))] = Field(
         0, description="Random seed (bed packing); same seed, backend and thread count give the same run.")
 

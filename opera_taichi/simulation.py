@@ -33,7 +33,7 @@ class Simulation:
     Taichi is started once (backend.init_taichi)."""
 
     def __init__(self, model: Model, arch: str = "cpu", *, build_beds: bool = True, quiet: bool = False,
-                 on_settle=None):
+                 on_settle=None, spin_wait: bool = False):
         self.model = model
         self.quiet = quiet
         self.arch = None
@@ -53,6 +53,7 @@ class Simulation:
                     m.description, name=m.name, base_xyz=m.base_xyz, base_yaw=m.base_yaw, fixed_base=m.fixed_base,
                     initial_q=m.initial_q, warn=self._warn)
         self.soil = None
+        self._spin = None  # the spin-wait helpers (sim.spin_wait), shared by the process
         self.tool_wrench = np.zeros((0, 6))
         self._bound: list = []
         if model.soil is not None:
@@ -70,6 +71,12 @@ class Simulation:
             # (machine, link) of each machine-bound tool, in soil tool order; standalone tools follow
             self._bound = [(self.machines[b.owner], b.link) for b in model.bindings if b.owner is not None]
             self._push_tool_states()
+            if spin_wait and self.arch in ("x64", "arm64"):  # (sim.spin_wait; a GPU's threads are not the pool's)
+                import taichi as ti
+
+                from .spin_wait import spin_wait as helpers
+
+                self._spin = helpers(int(ti.lang.impl.current_cfg().cpu_max_num_threads))
             warm_up = getattr(self.soil, "warm_up", None)  # (optional for a solver: compiles, runs nothing)
             if warm_up is not None:
                 warm_up(model.dt)
@@ -87,7 +94,7 @@ class Simulation:
             scene = load_scene(scene, sets)
         elif overrides:
             raise ValueError("overrides go with a scene file path; a loaded Scene already has its values")
-        sim = cls(build_model(scene), arch=arch or scene.sim.arch, quiet=quiet)
+        sim = cls(build_model(scene), arch=arch or scene.sim.arch, quiet=quiet, spin_wait=scene.sim.spin_wait)
         sim.scene = scene
         return sim
 
@@ -95,6 +102,11 @@ class Simulation:
     @property
     def machine_names(self) -> list[str]:
         return list(self.machines)
+
+    @property
+    def spin_wait_helpers(self) -> int:
+        """How many processes keep the other cores running while this simulation steps (sim.spin_wait)."""
+        return len(self._spin.processes) if self._spin is not None else 0
 
     @property
     def machine(self):
@@ -139,6 +151,8 @@ class Simulation:
         machine, or None to keep the last commands)."""
         if getattr(self, "_closed", False):
             raise RuntimeError("the simulation was closed")
+        if self._spin is not None:
+            self._spin.touch()
         t_next = (self.step_count + 1) * self.model.dt
         self.apply(as_control(control, self.machine_names, t_next))
         if self.world is not None:

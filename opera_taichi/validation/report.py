@@ -167,7 +167,10 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    the default 6 (1.74 x); at a90 d0.3 w1.5, 3 grains, 0 / 0.1 / 0.3 read 1.42-1.44 / 1.69-1.78 / 2.45-2.71 x (two
    seeds each), and without it the draft no longer hardens with travel. Part of that is a weaker material (the wall
    at 5 grains across H reads 0.79 x at 0.2 H without it, above), so 0.99 x is not a calibration. Taking the rolling
-   resistance off the tool contacts alone changes little (2.48 / 2.28 against 2.71 / 2.45 x). But the heaps need
+   resistance off the tool contacts alone changes little (2.48 / 2.28 against 2.71 / 2.45 x), and off the grain
+   pairs near the tool not enough: with none between grains within one diameter of the blade's surface, or anywhere
+   its SDF grid reaches, the plane-strain a90 d0.3 at 4 grains across read 1.52 and 1.50 x against 1.73 x (a
+   scratch copy, one run each, 2026-11-26). But the heaps need
    it: it stands in for the grains' shape, and spheres without it heap at about 20 deg. So the blade gates take the
    resolution (20 grains across d in plane strain) rather than a lower rolling resistance; the heaps' angle from
    grain shape (clumps of spheres) would let a coarser blade pass.
