@@ -170,7 +170,8 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    resistance off the tool contacts alone changes little (2.48 / 2.28 against 2.71 / 2.45 x), and off the grain
    pairs near the tool not enough: with none between grains within one diameter of the blade's surface, or anywhere
    its SDF grid reaches, the plane-strain a90 d0.3 at 4 grains across read 1.52 and 1.50 x against 1.73 x (a
-   scratch copy, one run each, 2026-11-26). But the heaps need
+   scratch copy, one run each, 2026-11-26); nor is it the edge's underside holding grains: with no friction and
+   no rolling resistance where the blade's normal points down, the same case read 1.80 x. But the heaps need
    it: it stands in for the grains' shape, and spheres without it heap at about 20 deg. So the blade gates take the
    resolution (20 grains across d in plane strain) rather than a lower rolling resistance; the heaps' angle from
    grain shape (clumps of spheres) would let a coarser blade pass.
