@@ -45,8 +45,10 @@ class SpinWait:
         self._file.flush()
         self._page = mmap.mmap(self._file.fileno(), _DEADLINE.size)
         fd = self._file.fileno()
+        # (no standard streams: a helper must not hold open a pipe that a caller reads the run's output from)
         self.processes = [subprocess.Popen([sys.executable, "-c", _HELPER, str(fd), str(os.getpid())],
-                                           pass_fds=(fd,), stdin=subprocess.DEVNULL)
+                                           pass_fds=(fd,), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                           stderr=subprocess.DEVNULL)
                           for _ in range(helpers)]
 
     def touch(self) -> None:
