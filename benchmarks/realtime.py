@@ -101,11 +101,11 @@ def main() -> int:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
     if args.repeat < 1:
         parser.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
+    if args.spin_wait:
+        print("sim.spin_wait on\n")
     print("| scene | radius m | sleep | particles | awake (mean) | RTF | RTF range | M particle-steps/s "
           "| draft kN (8-16 s) | FEE kN | draft/FEE |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    if args.spin_wait:
-        print("(sim.spin_wait on)\n")
     medians = {}
     for path, radius in runs:
         for sleep in sleeps:
