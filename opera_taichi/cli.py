@@ -106,6 +106,9 @@ def _cmd_view(args) -> int:
     chosen = [flag for flag, given in (("--html", args.html), ("--mp4", args.mp4)) if given]
     if len(chosen) > 1:
         raise UserError("view: give one of --html FILE or --mp4 FILE (or neither, to serve the replay)")
+    for flag, target, suffixes in (("--html", args.html, (".html", ".htm")), ("--mp4", args.mp4, (".mp4",))):
+        if target and Path(target).suffix.lower() not in suffixes:  # never over a run's manifest or CSV
+            raise UserError(f"{flag}: {target}: expected a file name ending in {' or '.join(suffixes)}")
     if args.html:
         from .viewer.playback import write_html
 

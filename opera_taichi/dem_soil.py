@@ -1329,7 +1329,7 @@ class DemSoil:
     def heightmap(self, x_axis: np.ndarray, y_axis: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
         """Terrain height on the grid (x_axis, y_axis uniformly spaced nodes): the soil surface as a ball of the
         grain radius rolling over the grains traces it (each grain's own top z + r right above it, narrow gaps
-        between grains bridged), or the static ground where no grain is within two radii of the node.
+        between grains bridged), or the static ground (the pit floor, the ground around a pit) where that is higher.
         exclude: a mask over particles() of grains to leave out (e.g. those a tool carries)."""
         x_axis = np.asarray(x_axis, dtype=np.float64).ravel()
         y_axis = np.asarray(y_axis, dtype=np.float64).ravel()
@@ -1353,8 +1353,9 @@ class DemSoil:
                 flags.from_numpy(host)
             dem.surface_height(self.n_act, self._kin, self._prop, flags, height, x_axis[0], spacing[0],
                                y_axis[0], spacing[1])
-        z = height.to_numpy()
-        return np.where(np.isfinite(z), z, self.static_ground(x_axis, y_axis))
+        # the static ground bounds the surface from below: a grain against a pit wall bridges nodes just outside
+        # the pit, where the ground is solid up to its rim
+        return np.maximum(height.to_numpy(), self.static_ground(x_axis, y_axis))
 
     def mass_in_box(self, position, quat_xyzw, box_min, box_max) -> float:
         """Mass of the particles whose centre, in the frame (position, quat_xyzw), lies in the box [min, max].

@@ -205,9 +205,13 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
         if j not in joints:
             raise UserError(f"{key}.initial_joints.{j}: not an actuated joint of {desc.name} "
                             f"(joints: {', '.join(joints)})")
-    initial_q = {j: float(cfg.initial_joints.get(j, 0.0)) for j in joints}
-    for j, q in initial_q.items():
+    initial_q = {}
+    for j in joints:
         lo, hi = desc.joint_limits.get(j, (-math.inf, math.inf))
+        if j not in cfg.initial_joints:  # a joint not given starts at 0, or at its limit nearest to 0
+            initial_q[j] = min(max(0.0, lo), hi)
+            continue
+        q = initial_q[j] = float(cfg.initial_joints[j])
         if not lo - 1e-9 <= q <= hi + 1e-9:
             raise UserError(f"{key}.initial_joints.{j}: {q:.4f} rad is outside the joint's limits "
                             f"[{lo:.4f}, {hi:.4f}] rad")

@@ -159,11 +159,18 @@ class ObserverBus:
         return {obs.key: {"observer": obs.get_state(), "next_t": nxt} for obs, nxt in zip(self.observers, self._next)}
 
     def close(self, sim, status: str, message: str) -> None:
+        interrupted = None
         for obs in self.observers:
             try:
                 obs.close(sim, status, message)
+            except KeyboardInterrupt as exc:  # a second Ctrl-C skips what is closing (plots...), not the manifest
+                interrupted = exc
+                message = f"{message}; closing interrupted: {obs.key} not closed".lstrip("; ")
+                print(f"warning: {obs.key} not closed (interrupted)", file=sys.stderr)
             except Exception as exc:  # one observer's failure must not cost the others' files
                 print(f"warning: {obs.key} not closed ({type(exc).__name__}: {exc})", file=sys.stderr)
+        if interrupted is not None:
+            raise interrupted
 
 
 # ---------------------------------------------------------------------------------------------- run-folder files
@@ -231,7 +238,7 @@ class JointsCsv(CsvObserver):
         self.rate = rate
 
     def header(self, sim) -> list[str]:
-        return ["t"] + [f"{c}.{k}" for c in joint_columns(sim) for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")]
+        return csv_columns(sim.model)[self.filename]
 
     def rows(self, sim):
         row = []
@@ -242,9 +249,23 @@ class JointsCsv(CsvObserver):
         return [row]
 
 
-def joint_columns(sim) -> list[str]:
-    several = len(sim.machines) > 1
-    return [f"{name}.{j}" if several else j for name, m in sim.machines.items() for j in m.joint_names]
+def joint_columns(model) -> list[str]:
+    """The machines' joints as joints.csv names them: `<joint>`, or `<machine>.<joint>` for several machines."""
+    several = len(model.machines) > 1
+    return [f"{m.name}.{j}" if several else j for m in model.machines for j in m.description.actuated_joints]
+
+
+def csv_columns(model) -> dict[str, list[str]]:
+    """The header of each CSV file a run of this model writes (a study checks its metrics against them)."""
+    out = {}
+    if model.machines:
+        out[JointsCsv.filename] = ["t"] + [f"{c}.{k}" for c in joint_columns(model)
+                                           for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")]
+    if model.soil is not None:
+        out[WrenchCsv.filename] = ["t", "tool", "fx", "fy", "fz", "tx", "ty", "tz"]
+        out[SoilMassCsv.filename] = ["t", "mass_kg", "particles_kg", "out_of_domain_kg"] + \
+            [f"in_{b.name}_kg" for b in model.bindings]
+    return out
 
 
 class WrenchCsv(CsvObserver):
@@ -256,7 +277,7 @@ class WrenchCsv(CsvObserver):
         self.rate = rate
 
     def header(self, sim):
-        return ["t", "tool", "fx", "fy", "fz", "tx", "ty", "tz"]
+        return csv_columns(sim.model)[self.filename]
 
     def rows(self, sim):
         return [[b.name] + list(sim.tool_wrench[i]) for i, b in enumerate(sim.model.bindings)]
@@ -342,7 +363,7 @@ class SoilMassCsv(CsvObserver):
 
     def header(self, sim):
         self._planes = [hull_halfspaces(b.mesh) for b in sim.model.bindings]
-        return ["t", "mass_kg", "particles_kg", "out_of_domain_kg"] + [f"in_{b.name}_kg" for b in sim.model.bindings]
+        return csv_columns(sim.model)[self.filename]
 
     def start(self, sim, run):
         self._planes = [hull_halfspaces(b.mesh) for b in sim.model.bindings]

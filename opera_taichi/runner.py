@@ -164,6 +164,9 @@ def claim_run_folder(scene, out_dir, *, overwrite: bool = False, resume: bool = 
     key = "--out" if out_dir is not None else "output.dir"
     if resume:
         return out
+    holder = next((p for p in Path(out).resolve().parents if _is_run_folder(p)), None)
+    if holder is not None:  # its --overwrite would delete this run, `runs` would not list it
+        raise UserError(f"{key}: {out} lies inside the run folder {holder}; give a folder outside it")
     if not explicit:
         base, k = out, 1
         while True:
@@ -178,13 +181,15 @@ def claim_run_folder(scene, out_dir, *, overwrite: bool = False, resume: bool = 
     if out.exists() and not out.is_dir():
         raise UserError(f"{key}: {out} is a file, not a folder")
     if (out / "manifest.json").is_file():
+        try:
+            status, manifest = run_folder_status(out)
+        except UserError:
+            status, manifest = "unreadable", {}
         if not overwrite:
-            try:
-                status = json.loads((out / "manifest.json").read_text()).get("status", "unknown")
-            except (OSError, ValueError):
-                status = "unreadable"
             raise UserError(f"{key}: {out} holds a run already (status {status}); use --overwrite to replace it, "
                             f"--resume {out} to continue it, or another folder")
+        if status == "running":  # emptied under it, its files and the new run's would mix
+            raise UserError(f"--overwrite: {out} is still running (pid {manifest.get('pid')}); stop it first")
         for item in out.iterdir():
             shutil.rmtree(item) if item.is_dir() and not item.is_symlink() else item.unlink()
     elif out.is_dir() and any(out.iterdir()):
@@ -206,7 +211,7 @@ class Plots(Observer):
 
     def close(self, sim, status, message):
         density = sim.model.soil.bulk.density if sim.model.soil is not None else None
-        write_plots(self.out, joint_columns(sim), _limits(sim), density)
+        write_plots(self.out, joint_columns(sim.model), _limits(sim), density)
 
 
 class Summary(Observer):
@@ -370,6 +375,15 @@ def process_alive(pid: int) -> bool:
     return True
 
 
+def _is_run_folder(folder: Path) -> bool:
+    """Whether the folder holds a run's manifest (not another tool's manifest.json)."""
+    try:
+        manifest = json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(manifest, dict) and "status" in manifest and "scene" in manifest
+
+
 def run_folder_status(run_dir: Path) -> tuple[str, dict]:
     """('done' | 'running' | 'died' | 'diverged' | ..., manifest): `died` is a manifest that says running whose
     process is gone (killed, out of memory, power loss)."""
@@ -380,6 +394,8 @@ def run_folder_status(run_dir: Path) -> tuple[str, dict]:
         raise UserError(f"--resume: {run_dir} is not a run folder (no manifest.json)") from None
     except (OSError, ValueError) as exc:
         raise UserError(f"--resume: {path}: unreadable manifest ({exc})") from None
+    if not isinstance(manifest, dict):
+        raise UserError(f"--resume: {path}: unreadable manifest (not a JSON object)")
     status = manifest.get("status", "unknown")
     if status == "running":
         same_host = manifest.get("host") in (None, socket.gethostname())

@@ -459,7 +459,8 @@ class MachineConfig(_Model):
                           "when there is one.")
     base_pose: BasePose = Field(default_factory=BasePose, description="Pose of base_link in the world.")
     fixed_base: Bool = Field(True, description="Weld base_link to the world (no tracks on the ground).")
-    initial_joints: JointAngles = Field(default_factory=dict, description="Joint name -> initial angle.")
+    initial_joints: JointAngles = Field(default_factory=dict, description="Joint name -> initial angle; a joint not given starts at 0, "
+                                                     "or at its limit nearest to 0.")
     initial_joints_deg: Optional[JointAnglesDeg] = Field(
         None, exclude=True, description="Joint name -> initial angle in degrees (may be combined with "
                                         "initial_joints for other joints).")

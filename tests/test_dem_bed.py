@@ -64,6 +64,9 @@ def test_heightmap_is_the_soil_surface_or_the_static_ground(bed):
     # a friction-poured (loose) bed has gaps between its top grains up to ~1.5 diameters deep; the floor is 8 below
     assert np.all(surface > -4.0 * r) and -r < surface.mean() < 0.5 * r
     assert np.all(z[outside, :] == 0.0) and np.all(z[:, outside] == 0.0)
+    # just outside the pit's wall the ground is solid to the rim: grains inside the wall do not reach under it
+    off_pit = (np.abs(xs)[:, None] > 0.2) | (np.abs(xs)[None, :] > 0.2)
+    assert np.all(z[off_pit] >= 0.0)
     # each node carries the highest point a ball of the grain radius resting on the grains reaches, less r
     p = bed.particles()
     for i, j in [(30, 30), (35, 41), (20, 47)]:

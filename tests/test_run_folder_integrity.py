@@ -1,6 +1,10 @@
 """A run folder cannot lie: a run never writes into another run's folder, its manifest's status is always true,
 and `validate` refuses what would fail at run time."""
 import json
+import os
+import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -25,6 +29,14 @@ def test_out_into_an_existing_run_is_refused_and_nothing_in_it_changes(tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "holds a run already (status done)" in err[0] and "--overwrite" in err[0]
     assert _snapshot(out) == before
+    assert main(["run", DIG, "--out", str(out / "sub" / "run"), "--quiet", "--set", "sim.duration=0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"lies inside the run folder {out}" in err[0], err
+    assert _snapshot(out) == before
+    (tmp_path / "web").mkdir()   # another tool's manifest.json above a run folder is no run
+    (tmp_path / "web" / "manifest.json").write_text('{"name": "app", "start_url": "/"}')
+    assert main(["run", DIG, "--out", str(tmp_path / "web" / "run"), "--quiet", "--set", "sim.duration=0.1",
+                 "--set", "output.plots=false"]) == 0
 
 
 def test_overwrite_empties_the_folder_first(tmp_path):
@@ -35,6 +47,55 @@ def test_overwrite_empties_the_folder_first(tmp_path):
                  "--set", "output.plots=false"]) == 0
     assert not (out / "notes.txt").exists() and not (out / "joints.png").exists()   # nothing stale is kept
     assert json.loads((out / "manifest.json").read_text())["sim_time"] == pytest.approx(0.1)
+
+
+def _fake_run(folder: Path, pid: int, status: str = "running") -> None:
+    folder.mkdir(parents=True)
+    (folder / "manifest.json").write_text(json.dumps({"status": status, "pid": pid, "host": socket.gethostname()}))
+    (folder / "joints.csv").write_text("t\n0.0\n")
+
+
+def test_overwrite_refuses_a_run_that_is_still_going_and_replaces_a_dead_one(tmp_path, capsys):
+    """Emptied under a live run, the folder would mix the two runs' files (the old one writes on)."""
+    live = tmp_path / "live"
+    _fake_run(live, os.getpid())   # this process: alive, on this host
+    before = _snapshot(live)
+    assert main(["run", DIG, "--out", str(live), "--quiet", "--overwrite", "--set", "sim.duration=0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is still running" in err[0] and str(os.getpid()) in err[0], err
+    assert _snapshot(live) == before
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / "dead"
+    _fake_run(dead, gone.pid)
+    assert main(["run", DIG, "--out", str(dead), "--quiet", "--overwrite", "--set", "sim.duration=0.1",
+                 "--set", "output.plots=false"]) == 0
+    assert json.loads((dead / "manifest.json").read_text())["status"] == "done"
+
+
+@pytest.mark.parametrize("text", ["[]", "3", "{"])
+def test_a_manifest_that_is_no_json_object_reads_as_unreadable(tmp_path, capsys, text):
+    from opera_taichi.runs import run_row
+
+    (tmp_path / "manifest.json").write_text(text)
+    assert run_row(tmp_path)["status"] == "unreadable"
+    assert main(["run", "--resume", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unreadable manifest" in err[0], err
+
+
+def test_a_second_ctrl_c_while_the_run_folder_closes_skips_the_plots_not_the_status(tmp_path, monkeypatch, capsys):
+    from opera_taichi import runner
+
+    def interrupted(self, sim, status, message):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner.Plots, "close", interrupted)
+    out = tmp_path / "run"
+    assert main(["run", DIG, "--out", str(out), "--quiet", "--set", "sim.duration=0.2"]) == 130
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "done" and "closing interrupted: Plots not closed" in manifest["message"]
+    assert (out / "summary.json").is_file() and not (out / "joints.png").exists()   # closed after the plots
 
 
 def test_a_non_empty_folder_that_is_no_run_is_refused(tmp_path, capsys):

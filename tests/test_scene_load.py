@@ -217,3 +217,18 @@ def test_run_folder_priority_out_then_output_dir_then_timestamp(tmp_path):
 def test_file_stem_with_odd_characters_gives_a_safe_name(tmp_path):
     scene = load_scene(_write(tmp_path, "sim: {}\n", "my dig (v2).yaml"))
     assert scene.name == "my_dig__v2_"
+
+
+def test_a_joint_without_an_initial_angle_starts_at_zero_or_its_nearest_limit(tmp_path):
+    from opera_taichi.model import build_model
+
+    scene = load_scene(_write(tmp_path, "machine: {urdf: zx120, initial_joints: {boom_joint: -0.4}}\n"))
+    machine = build_model(scene).machines[0]
+    limits = machine.description.joint_limits
+    assert limits["arm_joint"][0] > 0.0   # the ZX120's arm cannot stand at 0
+    assert machine.initial_q["arm_joint"] == limits["arm_joint"][0]
+    assert machine.initial_q["swing_joint"] == 0.0 and machine.initial_q["boom_joint"] == -0.4
+    # an angle given outside the limits is still refused, naming the key
+    bad = load_scene(_write(tmp_path, "machine: {urdf: zx120, initial_joints: {arm_joint: 0.0}}\n", "bad.yaml"))
+    with pytest.raises(UserError, match=r"^machine.initial_joints.arm_joint: 0.0000 rad is outside the joint's limits"):
+        build_model(bad)

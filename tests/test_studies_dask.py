@@ -88,6 +88,14 @@ def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, capsys):
     assert rows2[4]["status"] == "bad input" and "friction_angle" in rows2[4]["error"]  # 95 deg: not an angle
     for r in rows2[:4]:
         assert (Path(r["run_dir"]) / "point.json").stat().st_mtime_ns == stamps[r["point"]]
+    # a study none of whose points finished exits 1 (its table says why): here the bed of the 32 deg point, from the
+    # cache, is stopped by a speed limit its settled grains exceed at once
+    spec = spec.replace(f"[26, 29, {TRUE_FRICTION_DEG:g}, 35, 95]", f"[{TRUE_FRICTION_DEG:g}]\n  soil.max_speed: [1e-6]")
+    (study_dir / "none.yaml").write_text(spec.replace("name: friction", "name: none"))
+    code = main(["study", str(study_dir / "none.yaml"), "--workers", "1", "--out", str(study_dir / "none")])
+    assert code == 1
+    assert "error: study: all 1 points failed" in capsys.readouterr().err
+    assert [r["status"] for r in _rows(study_dir / "none" / "study.csv")] == ["diverged"]
 
 
 def test_study_bad_input_is_one_line(tmp_path, capsys):
@@ -101,6 +109,27 @@ def test_study_bad_input_is_one_line(tmp_path, capsys):
     (tmp_path / "bad3.yaml").write_text(BASE + "parameters:\n  sim.duration: [1]\nmetrics: [wrench.blade.fx]\n")
     assert main(["study", str(tmp_path / "bad3.yaml")]) == 2
     assert "metrics.0: expected wrench.<tool>.<column>.<stat>" in capsys.readouterr().err
+    # what the runs would only find at their end is refused before any of them: files, tools and columns the
+    # scene's runs do not write, and an actuator of a joint the machine does not have
+    for i, (metric, words) in enumerate([
+            ("joints.boom_joint.q.max", "metrics.0: 'joints.boom_joint.q.max': this scene's runs write no joints.csv"),
+            ("wrench.bucket.fx.mean", "metrics.0: tool_wrench.csv has no tool 'bucket' (tools: blade)"),
+            ("wrench.blade.fxx.mean", "metrics.0: tool_wrench.csv has no column 'fxx' (columns: t, tool, fx,"),
+            ("{name: d, file: soil_mass.csv, column: in_bucket_kg}", "soil_mass.csv has no column 'in_bucket_kg'")]):
+        (tmp_path / f"m{i}.yaml").write_text(BASE + f"parameters:\n  sim.duration: [1]\nmetrics: [{metric}]\n")
+        assert main(["study", str(tmp_path / f"m{i}.yaml")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err, err
+    dig = ROOT / "scenes" / "zx120_dig_cycle.yaml"
+    (tmp_path / "joint.yaml").write_text(f"scene: {dig}\nparameters:\n  machine.actuators.bom_joint.max_speed: [0.1]\n"
+                                         "metrics: [joints.boom_joint.qdd.abs_max]\n")
+    assert main(["study", str(tmp_path / "joint.yaml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "parameters:" in err and "bom_joint" in err and "\n" not in err, err
+    (tmp_path / "joint.yaml").write_text(f"scene: {dig}\nparameters:\n  machine.actuators.boom_joint.max_speed: [0.1]\n"
+                                         "metrics: [joints.boom_joint.qdd.abs_max]\n")
+    assert main(["study", str(tmp_path / "joint.yaml")]) == 2
+    assert "joints.csv has no column 'boom_joint.qdd'" in capsys.readouterr().err
 
 
 def test_calibration_recovers_the_friction_angle_of_its_reference(study_dir, tmp_path):

@@ -177,6 +177,10 @@ def test_view_refuses_what_is_not_a_recorded_run(run, tmp_path, capsys):
     shutil.copytree(run, bad)
     (bad / REPLAY_FILE).write_bytes(b"this is not a replay")
     _one_line_exit_2(capsys, ["view", str(bad), "--html", str(tmp_path / "x.html")], "not an opera-taichi replay")
+    manifest = (run / "manifest.json").read_bytes()   # a slip of the tab key must not overwrite the run's own files
+    _one_line_exit_2(capsys, ["view", str(run), "--html", str(run / "manifest.json")], "ending in .html or .htm")
+    _one_line_exit_2(capsys, ["view", str(run), "--mp4", str(run / "joints.csv")], "ending in .mp4")
+    assert (run / "manifest.json").read_bytes() == manifest
     if os.geteuid() != 0:  # root reads any file
         locked = tmp_path / "locked"
         shutil.copytree(run, locked)

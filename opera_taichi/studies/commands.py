@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 
 def _cmd_compare(args) -> int:
@@ -31,9 +32,13 @@ def _cmd_compare(args) -> int:
 def _cmd_study(args) -> int:
     from .study import run_study
 
-    table = run_study(args.study, scheduler=args.scheduler, workers=args.workers, out=args.out, quiet=args.quiet)
+    table, failed, points = run_study(args.study, scheduler=args.scheduler, workers=args.workers, out=args.out,
+                                      quiet=args.quiet)
     if not args.quiet:
         print(table)
+    if points and failed == points:  # nothing to read in the table: say so to a script too
+        print(f"error: study: all {points} points failed (their errors: {table})", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -49,6 +49,7 @@ from ..errors import UserError
 
 STATS = ("mean", "median", "max", "min", "abs_max", "rms", "std", "final")
 CSV_SHORT = {"wrench": "tool_wrench.csv", "joints": "joints.csv", "mass": "soil_mass.csv"}
+CSV_FILES = frozenset(CSV_SHORT.values())
 POINT_FILE = "point.json"
 REFERENCE_KEYS = ("terrain", "terrain_before", "transform", "fit_transform", "joints", "against")
 STUDY_KEYS = ("name", "scene", "set", "parameters", "sampling", "samples", "seed", "metrics", "reference", "out",
@@ -263,15 +264,58 @@ def overrides(study: Study, point: dict) -> list[str]:
     return [f"{k}={json.dumps(v)}" for k, v in {**study.fixed, **point}.items()]
 
 
+MODEL_KEYS = ("machine", "machines", "tools", "motion")   # what a --set path can change of the machines and tools
+
+
 def check_points(study: Study, points: list[dict], label: str) -> None:
-    """Every point's scene loads (a parameter path that does not exist fails here, before any run)."""
+    """Every point's scene loads and builds (a parameter path that does not exist, an actuator of a joint the
+    machine lacks, fail here, before any run), and its CSV metrics name columns its runs write. A model is built
+    once per distinct set of machine, tool and motion values (about a second each)."""
+    from ..model import build_model
+    from ..observers import csv_columns
     from ..scene import load_scene
 
+    built: set[str] = set()
     for point in points:
+        sets = overrides(study, point)
+        shape = json.dumps([o for o in sets if o.split(".", 1)[0].split("=", 1)[0] in MODEL_KEYS])
         try:
-            load_scene(study.scene, overrides(study, point))
+            scene = load_scene(study.scene, sets)
+            if shape in built:
+                continue
+            built.add(shape)
+            model = build_model(scene)
         except UserError as exc:
             raise UserError(f"{label}: parameters: {' '.join(str(exc).split())}") from None
+        check_metric_columns(study.metrics, csv_columns(model), [b.name for b in model.bindings], label)
+
+
+def check_metric_columns(metrics: list, columns: dict[str, list[str]], tools: list[str], label: str) -> None:
+    """The CSV metrics name files, tools and columns a run writes (columns: csv_columns of its model)."""
+    for i, spec in enumerate(metrics):
+        key = f"metrics.{i}"
+        if isinstance(spec, str):
+            head, _, rest = spec.partition(".")
+            if head not in CSV_SHORT:
+                continue
+            parts = rest.split(".")
+            file, where = CSV_SHORT[head], {}
+            if head == "wrench":
+                where, column = {"tool": parts[0]}, ".".join(parts[1:-1])
+            else:
+                column = ".".join(parts[:-1])
+        else:
+            file, column, where = spec["file"], spec["column"], spec.get("where") or {}
+            if file not in CSV_FILES:
+                continue
+        if file not in columns:
+            raise UserError(f"{label}: {key}: {spec!r}: this scene's runs write no {file} (it has no "
+                            f"{'machine' if file == 'joints.csv' else 'soil'})")
+        for name in (column, *where):
+            if name not in columns[file]:
+                raise UserError(f"{label}: {key}: {file} has no column {name!r} (columns: {', '.join(columns[file])})")
+        if file == CSV_SHORT["wrench"] and "tool" in where and str(where["tool"]) not in tools:
+            raise UserError(f"{label}: {key}: {file} has no tool {where['tool']!r} (tools: {', '.join(tools)})")
 
 
 def point_id(index: int, study: Study, point: dict) -> str:
@@ -465,8 +509,10 @@ def make_task(study: Study, index: int, point: dict, runs: Path, objective=None,
             "objective": objective}
 
 
-def run_study(path, scheduler: str | None = None, workers: int | None = None, out=None, quiet: bool = False) -> Path:
-    """Runs a study (resumable) and writes its table and plots; returns the path of study.csv."""
+def run_study(path, scheduler: str | None = None, workers: int | None = None, out=None,
+              quiet: bool = False) -> tuple[Path, int, int]:
+    """Runs a study (resumable) and writes its table and plots; returns the path of study.csv, how many of its
+    points failed and how many it has."""
     study = load_study(path, out)
     if study.calibrate is not None and not study.parameters:
         raise UserError(f"{path}: parameters: none to study (a calibration: `calibrate {path}`)")
@@ -521,7 +567,7 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
         say(f"warning: study.png not written ({type(exc).__name__}: {exc})")
     failed = sum(r["status"] != "done" for r in ordered)
     say(f"study {study.name}: {len(ordered) - failed} done, {failed} failed, {wall:.1f} s")
-    return csv_path
+    return csv_path, failed, len(ordered)
 
 
 def write_study_meta(study: Study, wall: float, ran: int) -> None:
