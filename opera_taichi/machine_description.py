@@ -20,7 +20,7 @@ import yourdfpy
 from lxml import etree
 
 from . import paths
-from .errors import UserError
+from .errors import UserError, did_you_mean
 
 DEFAULT_GAIN = 5.0          # 1/s, position-error-to-speed gain when a machine config gives none
 PLACEHOLDER_MASS = 1.0      # kg: a link with geometry lighter than this is a stand-in, not a machine part
@@ -327,13 +327,14 @@ def _actuators(cfg, where, actuated, joints, urdf_path, warnings) -> dict[str, A
 def _apply_overrides(actuators: dict[str, Actuator], overrides) -> None:
     for name, values in (overrides or {}).items():
         if name not in actuators:
-            raise UserError(f"actuator override: unknown joint {name!r} (actuated: {', '.join(actuators)})")
+            raise UserError(f"actuators.{name}: not an actuated joint{did_you_mean(name, actuators)} (actuated: "
+                            f"{', '.join(actuators)})")
         if not isinstance(values, dict):
-            raise UserError(f"actuator override for {name}: expected a mapping of {', '.join(ACTUATOR_KEYS)}")
+            raise UserError(f"actuators.{name}: expected a mapping of {', '.join(ACTUATOR_KEYS)}")
         for key, value in values.items():
             if key not in ACTUATOR_KEYS:
-                raise UserError(f"actuator override {name}.{key}: unknown key (allowed: {', '.join(ACTUATOR_KEYS)})")
-            setattr(actuators[name], key, _positive(value, f"actuator override {name}.{key}"))
+                raise UserError(f"actuators.{name}.{key}: unknown key (allowed: {', '.join(ACTUATOR_KEYS)})")
+            setattr(actuators[name], key, _positive(value, f"actuators.{name}.{key}"))
 
 
 def _tip_and_soil_links(cfg, where, links, children, root, warnings, from_config):

@@ -199,7 +199,12 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
     from .machine_description import load_machine
 
     overrides = {j: a.model_dump(exclude_none=True) for j, a in (cfg.actuators or {}).items()}
-    desc = load_machine(cfg.urdf, cfg.config, overrides)
+    try:
+        desc = load_machine(cfg.urdf, cfg.config, overrides)
+    except UserError as exc:  # an actuator override names its scene key
+        if str(exc).startswith("actuators."):
+            raise UserError(f"{key}.{exc}") from None
+        raise
     joints = desc.actuated_joints
     for j in cfg.initial_joints:
         if j not in joints:

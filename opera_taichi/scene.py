@@ -6,7 +6,6 @@ docs/scene_reference.md is generated from them: `python -m opera_taichi.scene > 
 from __future__ import annotations
 
 import csv
-import difflib
 import inspect
 import json
 import math
@@ -20,7 +19,7 @@ from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationE
                       model_validator)
 from pydantic_core import PydanticCustomError
 
-from .errors import UserError
+from .errors import UserError, did_you_mean
 from .paths import machines_dir
 
 MAX_SCENE_BYTES = 5 * 1024 * 1024
@@ -58,13 +57,6 @@ def _fail(expected: str | None = None, value: Any = ..., *, message: str | None 
     ctx: dict[str, Any] = {"expected": expected or "", "message": message or "", "key": key or "",
                            "hint": hint, "got": "" if value is ... else _show(value)}
     return PydanticCustomError("scene_value", "{expected}{message}", ctx)
-
-
-def _did_you_mean(word: Any, options) -> str:
-    if not isinstance(word, str):
-        return ""
-    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def _fmt(x: float) -> str:
@@ -117,7 +109,7 @@ class _ChoiceRule:
         if isinstance(value, str) and value in self.choices:
             return value
         hint = (f" ({value} is not available yet)" if value in self.not_yet
-                else _did_you_mean(value, self.choices))
+                else did_you_mean(value, self.choices))
         raise _fail("one of " + ", ".join(self.choices), value, hint=hint)
 
 
@@ -217,7 +209,7 @@ class _UrdfRule:
             builtin = _builtin_machines()
             if value not in builtin:
                 raise _fail(f"a built-in machine ({', '.join(builtin) or 'none installed'}) or a path to a "
-                            ".urdf file", value, hint=_did_you_mean(value, builtin))
+                            ".urdf file", value, hint=did_you_mean(value, builtin))
             urdf = machines_dir() / value / f"{value}.urdf"
             if not urdf.is_file():
                 raise _fail(message=f"built-in machine {value!r} has no URDF (no file at {urdf})")
@@ -234,7 +226,7 @@ class _MachineConfigRule:
             if not path.is_file():
                 builtin = _builtin_machines()
                 raise _fail(f"a built-in machine ({', '.join(builtin) or 'none installed'}) or a path to a "
-                            "machine.yaml", value, hint=_did_you_mean(value, builtin))
+                            "machine.yaml", value, hint=did_you_mean(value, builtin))
             return path
         return _FileRule()(value, info)
 
@@ -878,7 +870,7 @@ def _message_for(error: dict) -> tuple[list[str], str]:
     if kind == "extra_forbidden":
         parent_parts, parent = _walk_loc(error["loc"][:-1])
         allowed = _allowed_keys(parent) or []
-        hint = _did_you_mean(parts[-1], allowed)
+        hint = did_you_mean(parts[-1], allowed)
         return parts, f"unknown key{hint}; allowed: {', '.join(allowed)}"
     if kind in ("model_type", "model_attributes_type", "dict_type"):
         allowed = _allowed_keys(annotation)
@@ -889,7 +881,7 @@ def _message_for(error: dict) -> tuple[list[str], str]:
         if kind == "union_tag_not_found":
             return parts + ["type"], f"required key is missing (one of {tags})"
         tag = ctx.get("tag")
-        hint = _did_you_mean(tag, _union_members(annotation))
+        hint = did_you_mean(tag, _union_members(annotation))
         return parts + ["type"], f"expected one of {tags}, got {_show(tag)}{hint}"
     if kind in ("too_short", "too_long"):
         bound = ctx.get("min_length") if kind == "too_short" else ctx.get("max_length")
@@ -1083,7 +1075,7 @@ def _apply_override(data: dict, text: str, label: str) -> str:
         elif isinstance(node, dict):
             allowed = _allowed_keys(annotation, node)
             if allowed is not None and part not in allowed:
-                raise UserError(_one_line(f"{label}: --set {here}: unknown key{_did_you_mean(part, allowed)}; "
+                raise UserError(_one_line(f"{label}: --set {here}: unknown key{did_you_mean(part, allowed)}; "
                                           f"allowed: {', '.join(allowed)}"))
             child = _child(_member_for(annotation, node, part), part)
             if last:

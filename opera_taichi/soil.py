@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from .errors import UserError
+from .errors import UserError, did_you_mean
 
 GRAVITY = 9.81
 SOLID_FRACTION = 0.6      # packing fraction of a settled bed; solid density = bulk density / 0.6
@@ -139,7 +139,8 @@ def resolve_soil(preset: str, overrides: dict | None = None) -> SoilBulk:
     values = dict(PRESETS[preset])
     for key in overrides:
         if key not in _ALLOWED:
-            raise UserError(f"soil.overrides.{key}: unknown key; allowed: {', '.join(_ALLOWED)}")
+            raise UserError(f"soil.overrides.{key}: unknown key{did_you_mean(key, _ALLOWED)}; allowed: "
+                            f"{', '.join(_ALLOWED)}")
     for base in ("friction_angle", "tool_friction_angle"):
         if base in overrides and base + "_deg" in overrides:
             raise UserError(f"soil.overrides.{base}_deg: give {base} (rad) or {base}_deg, not both")

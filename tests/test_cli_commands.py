@@ -53,7 +53,11 @@ def test_validate_reports_a_check_failure_as_one_line(scene_file, fake_simulatio
     fake_simulation["raise"] = UserError("machine.initial_joints.foo: not an actuated joint\nof zx120")
     assert cli.main(["validate", str(scene_file)]) == 2
     err = capsys.readouterr().err
-    assert err == "error: machine.initial_joints.foo: not an actuated joint of zx120\n"
+    assert err == f"error: {scene_file}: machine.initial_joints.foo: not an actuated joint of zx120\n"
+    # an error about something other than a scene key is passed on as it is
+    fake_simulation["raise"] = UserError("--out: runs/x is a file, not a folder")
+    assert cli.main(["validate", str(scene_file)]) == 2
+    assert capsys.readouterr().err == "error: --out: runs/x is a file, not a folder\n"
 
 
 def test_run_passes_out_dir_arch_and_quiet(scene_file, fake_simulation, tmp_path, capsys):

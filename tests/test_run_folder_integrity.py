@@ -124,4 +124,4 @@ def test_a_run_that_fails_at_run_time_says_so_in_its_manifest(tmp_path, monkeypa
 def test_validate_refuses_what_would_fail_at_run_time(radius, words, capsys):
     assert main(["validate", EXCAVATION, "--set", f"soil.overrides.radius={radius}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: soil.overrides.radius: ") and words in err[0], err
+    assert len(err) == 1 and err[0].startswith(f"error: {EXCAVATION}: soil.overrides.radius: ") and words in err[0], err
