@@ -74,7 +74,11 @@ def _cmd_run(args) -> int:
     else:
         if args.scene is None:
             raise UserError("run: a SCENE.yaml is required (or --resume RUN_DIR)")
-        scene = load_scene(args.scene, args.set)
+        sets = list(args.set or [])
+        if (args.ros1 or args.ros_tcp) and any(item.startswith("bridge.") for item in sets):
+            # the flag gives the bridge its kind (run_parts), so `--set bridge.rates...` needs no bridge.kind
+            sets.insert(0, f"bridge.kind={'ros1' if args.ros1 else 'ros_tcp'}")
+        scene = load_scene(args.scene, sets)
         if args.arch is not None:
             scene.sim.arch = args.arch
         if args.replay:

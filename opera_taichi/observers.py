@@ -39,6 +39,7 @@ class RunContext:
 
 class Observer:
     rate: float | None = None
+    closes_unstarted = False  # closed even when the run ended before it started (the manifest's status)
 
     @property
     def key(self) -> str:
@@ -122,6 +123,7 @@ class ObserverBus:
     def __init__(self, observers):
         self.observers = list(observers)
         self._next = [0.0] * len(self.observers)
+        self._started = 0  # how many (in order) have started
         self._period = [None] * len(self.observers)
         keys = [o.key for o in self.observers]
         for k in keys:
@@ -129,6 +131,7 @@ class ObserverBus:
                 raise ValueError(f"two observers share the key {k!r}; give one a `key` of its own")
 
     def start(self, sim, run: RunContext) -> None:
+        self._started = 0
         for i, obs in enumerate(self.observers):
             saved = run.states.get(obs.key)
             if run.resumed and saved is not None:
@@ -138,6 +141,7 @@ class ObserverBus:
             if isinstance(obs, Checkpointer):
                 obs.bus = self
             obs.start(sim, run)
+            self._started = i + 1
         if not run.resumed:
             self.after_step(sim)  # the initial state, at t = 0
 
@@ -160,7 +164,9 @@ class ObserverBus:
 
     def close(self, sim, status: str, message: str) -> None:
         interrupted = None
-        for obs in self.observers:
+        for i, obs in enumerate(self.observers):
+            if i >= self._started and not obs.closes_unstarted:  # one before it failed to start: nothing to close
+                continue
             try:
                 obs.close(sim, status, message)
             except KeyboardInterrupt as exc:  # a second Ctrl-C skips what is closing (plots...), not the manifest

@@ -61,6 +61,7 @@ class Manifest(Observer):
     """manifest.json: written when the run starts, kept fresh by the heartbeat, closed with the run's status."""
 
     rate = 1e-9
+    closes_unstarted = True
 
     def __init__(self, path: Path, data: dict):
         self.path, self.data = path, data
@@ -298,7 +299,9 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
             manifest.write()
 
             controller = controller or ScriptController(model)
-            parts = default_observers(scene, sim, manifest, quiet, progress) + list(observers)
+            # a caller's observers (a bridge, a view: what talks to a network) start first: one that cannot start
+            # ends the run before the run folder's files do
+            parts = list(observers) + default_observers(scene, sim, manifest, quiet, progress)
             every = checkpoint_every if checkpoint_every is not None else manifest.data.get("checkpoint_every")
             if every:
                 parts.append(Checkpointer(float(every)))  # last: it saves the others' states after they sampled

@@ -168,3 +168,12 @@ def test_subprocess_run_with_bad_override_exits_2(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert "sim.dt (from --set)" in proc.stderr and "'fast'" in proc.stderr
+
+
+def test_a_bridge_flag_gives_the_bridge_its_kind_for_set_bridge_keys(monkeypatch, capsys, tmp_path):
+    """`--ros1 --set bridge.rates...` on a scene without a bridge: the flag is the bridge's kind, so the scene
+    loads and the run goes on to look for its ROS master (none here)."""
+    monkeypatch.setenv("ROS_MASTER_URI", "http://127.0.0.1:1")
+    rc = cli.main(["run", str(REPO / "scenes" / "zx120_dig_cycle.yaml"), "--ros1", "--set",
+                   "bridge.rates.joint_states=50", "--out", str(tmp_path / "run")])
+    _assert_one_line(rc, capsys.readouterr(), ["--ros1:"])

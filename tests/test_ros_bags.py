@@ -102,3 +102,15 @@ def test_mcap_reads_with_mcap_ros2_support(runs):
             if channel.topic == "/zx120/joint_states":
                 assert list(decoded.name) == ["swing_joint", "boom_joint", "arm_joint", "bucket_joint"]
     assert dict(counts) == {t: math.floor(DURATION * r + 1e-9) + 1 for t, r in RATES.items()}
+
+
+@pytest.mark.parametrize("kind", ["mcap", "ros1"])
+def test_compare_reads_a_runs_own_bag_as_its_joint_log(runs, kind, tmp_path):
+    """The run against its own bag: the same joint profile (25 Hz, linearly interpolated to 100: within 1 mrad), no
+    lag."""
+    from opera_taichi.studies.compare import compare
+
+    out = runs[kind]
+    res = compare(out, joints=out / ("run.mcap" if kind == "mcap" else "run.bag"), out=tmp_path / "cmp")
+    assert set(res["joints"]) == {"swing_joint", "boom_joint", "arm_joint", "bucket_joint"}
+    assert res["joints_rmse_rad"] < 1e-3 and res["joints_lag_s"] == 0.0

@@ -98,6 +98,29 @@ def test_a_second_ctrl_c_while_the_run_folder_closes_skips_the_plots_not_the_sta
     assert (out / "summary.json").is_file() and not (out / "joints.png").exists()   # closed after the plots
 
 
+def test_an_observer_that_cannot_start_ends_the_run_before_its_files(tmp_path):
+    """A bridge whose topics do not fit the scene (found as it starts): the manifest says bad input, and no
+    observer that never started is closed (no empty CSVs, no plots of nothing, no summary of no run)."""
+    from opera_taichi.errors import UserError
+    from opera_taichi.observers import Observer
+    from opera_taichi.runner import run_scene
+    from opera_taichi.scene import load_scene
+
+    class Unplugged(Observer):
+        def start(self, sim, run):
+            raise UserError("bridge.rates.nosuch: no such topic in this scene")
+
+        def close(self, sim, status, message):
+            raise AssertionError("closed though it never started")
+
+    out = tmp_path / "run"
+    with pytest.raises(UserError, match="nosuch"):
+        run_scene(load_scene(DIG, ["sim.duration=0.1"]), out_dir=out, quiet=True, observers=[Unplugged()])
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "bad input" and "nosuch" in manifest["message"]
+    assert sorted(p.name for p in out.iterdir()) == ["manifest.json"]
+
+
 def test_a_non_empty_folder_that_is_no_run_is_refused(tmp_path, capsys):
     (tmp_path / "thesis.tex").write_text("x")
     assert main(["run", DIG, "--out", str(tmp_path), "--quiet", "--overwrite"]) == 2

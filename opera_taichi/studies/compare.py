@@ -273,7 +273,9 @@ def _read_bag(path: Path, key: str):
     rows: dict[str, list] = {}
     times: list[float] = []
     try:
-        bag_path = path.parent if path.suffix.lower() in (".mcap", ".db3") else path
+        # a file of a ROS 2 bag folder (beside its metadata.yaml) opens as the folder; a run's own run.mcap alone
+        in_folder = path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file()
+        bag_path = path.parent if in_folder else path
         from rosbags.typesys import Stores, get_typestore
 
         # a bag without its message definitions (ROS 2 before Iron) reads with the standard ones
