@@ -5,10 +5,12 @@ import hashlib
 import json
 import math
 import re
+import struct
 import subprocess
 from pathlib import Path
 
 import numpy as np
+
 import pytest
 
 import opera_taichi as ot
@@ -91,6 +93,48 @@ def test_ros_tcp_without_an_endpoint_is_a_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("error: --ros-tcp: cannot connect to a ROS-TCP-Endpoint")
     assert not (tmp_path / "r").exists()     # refused before a run folder was made
+
+
+def test_a_peer_that_sends_no_frames_is_refused_before_anything_is_allocated(tmp_path, capsys):
+    """Bytes from something that is no ROS-TCP-Endpoint: the lengths they spell are refused (no 4 GiB buffer)."""
+    import socket
+    import threading
+
+    from opera_taichi.ros.transport_tcp import MAX_PAYLOAD, frame, read_frame
+
+    for sent, words in [(b"\xff" * 64, "a destination of 4294967295 bytes"),
+                        (frame("/zx120/boom/cmd", b"x")[:-5] + struct.pack("<I", MAX_PAYLOAD + 1),
+                         f"a message of {MAX_PAYLOAD + 1} bytes to '/zx120/boom/cmd'"),
+                        (struct.pack("<I", 2) + b"\xc3\x28", "not UTF-8"),
+                        (frame("__handshake", b"{}"), None)]:
+        a, b = socket.socketpair()
+        with a, b:
+            b.sendall(sent)
+            if words is None:
+                assert read_frame(a) == ("__handshake", b"{}")
+                continue
+            with pytest.raises(ConnectionError, match=re.escape(words)):
+                read_frame(a)
+    with socket.socket() as server:   # the same at a run's first connection: one line, exit 2
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+
+        def junk():
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(b"\xff" * 64)
+                try:
+                    conn.recv(1)   # until the run hangs up
+                except OSError:
+                    pass
+
+        peer = threading.Thread(target=junk, daemon=True)
+        peer.start()
+        code = main(["run", str(DIG_CYCLE), "--ros-tcp", f"127.0.0.1:{port}", "--out", str(tmp_path / "r")])
+        peer.join(10)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("error: --ros-tcp: ") and "did not greet" in err[-1], err
 
 
 def test_joint_cmd_is_operas_message():

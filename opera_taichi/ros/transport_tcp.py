@@ -26,6 +26,8 @@ from ..errors import UserError
 
 HANDSHAKE_TIMEOUT = 10.0
 RECONNECT_INTERVAL = 1.0
+MAX_DESTINATION = 1024          # bytes of a topic or system destination name
+MAX_PAYLOAD = 64 * 1024 * 1024  # bytes of one message the endpoint sends us (commands, its log lines)
 
 
 def parse_address(text: str, what: str = "--ros-tcp") -> tuple[str, int]:
@@ -52,9 +54,18 @@ def _recv_exact(sock: socket.socket, n: int) -> bytes:
 
 
 def read_frame(sock: socket.socket) -> tuple[str, bytes]:
+    """One frame; ConnectionError for bytes that are no frame (the stream is lost: the caller reconnects), before
+    a length from the peer allocates anything beyond the limits."""
     (n,) = struct.unpack("<I", _recv_exact(sock, 4))
-    destination = _recv_exact(sock, n).decode("utf-8").rstrip("\x00")
+    if n > MAX_DESTINATION:
+        raise ConnectionError(f"not a ROS-TCP frame (a destination of {n} bytes)")
+    try:
+        destination = _recv_exact(sock, n).decode("utf-8").rstrip("\x00")
+    except UnicodeDecodeError:
+        raise ConnectionError("not a ROS-TCP frame (a destination that is not UTF-8)") from None
     (m,) = struct.unpack("<I", _recv_exact(sock, 4))
+    if m > MAX_PAYLOAD:
+        raise ConnectionError(f"not a ROS-TCP frame (a message of {m} bytes to {destination[:80]!r})")
     return destination, _recv_exact(sock, m)
 
 
