@@ -119,9 +119,15 @@ def _view_parts(scene, args, controller, observers):
     if args.view_rate is not None and not args.view_rate > 0:
         raise UserError(f"--view-rate: expected a positive number of frames per second, got {args.view_rate:g}")
     scripted = any(motion is not None for _, _, motion in machine_entries(scene))
+    teleop = controller is None and not scripted
     view = LiveView(host=args.view_host or "127.0.0.1", port=8080 if args.view_port is None else args.view_port,
-                    rate=args.view_rate or 10.0, teleop=controller is None and not scripted, quiet=args.quiet)
-    return ViewerController(view, controller), list(observers) + [view]
+                    rate=args.view_rate or 10.0, teleop=teleop, quiet=args.quiet)
+    observers = list(observers) + [view]
+    if teleop and args.pace is None:  # a person moves the sliders: the machine answers on the wall clock
+        from .pacing import RealTimePacer
+
+        observers.append(RealTimePacer(quiet=args.quiet))
+    return ViewerController(view, controller), observers
 
 
 def _cmd_view(args) -> int:

@@ -149,6 +149,19 @@ def test_teleop_sliders_command_the_machine_and_pause_holds_the_loop():
         sim.close()
 
 
+def test_a_run_dug_by_hand_keeps_to_the_wall_clock(tmp_path):
+    """`--view` with sliders (no motion, no bridge) is paced: the sleeping pacer keeps simulated time at most the
+    wall time since the first step (the machine alone would run several times faster than real time)."""
+    dig = ROOT / "scenes" / "zx120_dig_cycle.yaml"
+    for pace, out in ((None, tmp_path / "hand"), ("fast", tmp_path / "fast")):
+        argv = ["run", str(dig), "--out", str(out), "--quiet", "--set", "motion=null", "--set", "sim.duration=0.6",
+                "--view", "--view-port", str(free_port())] + (["--pace", pace] if pace else [])
+        assert cli.main(argv) == 0
+    paced = json.loads((tmp_path / "hand" / "manifest.json").read_text())
+    assert paced["sim_time"] == pytest.approx(0.6) and paced["real_time_factor"] <= 1.01
+    assert json.loads((tmp_path / "fast" / "manifest.json").read_text())["status"] == "done"
+
+
 # ---------------------------------------------------------------------------------------------- bad input
 def _one_line_exit_2(capsys, argv, *must):
     rc = cli.main(argv)
