@@ -130,6 +130,21 @@ def test_study_bad_input_is_one_line(tmp_path, capsys):
                                          "metrics: [joints.boom_joint.qdd.abs_max]\n")
     assert main(["study", str(tmp_path / "joint.yaml")]) == 2
     assert "joints.csv has no column 'boom_joint.qdd'" in capsys.readouterr().err
+    # calibrate: what no trial could change is refused before the first one
+    (tmp_path / "force.csv").write_text("t,tool,fx,fy,fz,tx,ty,tz\n" + "".join(
+        f"{0.1 * i:.1f},blade,{100 * i},0,0,0,0,0\n" for i in range(6)))
+    for i, (calibrate, words) in enumerate([
+            ("parameters: {soil.overrides.nosuch: {low: 0, high: 1}}\n  objective: force\n  force: {file: force.csv, "
+             "tool: blade}", "soil.overrides.nosuch: unknown key"),
+            ("parameters: {soil.overrides.friction_angle_deg: {low: 24, high: 40}}\n  objective: force\n  force: "
+             "{file: force.csv, tool: blade, t: [5, 9]}", "calibrate.force.t: 0 measured samples in [5, 9] (the file "
+             "spans 0-0.5 s)"),
+            ("parameters: {soil.overrides.friction_angle_deg: {low: 24, high: 40}}\n  objective: metric\n  metric: "
+             "{name: wrench.blade.fx.mean, target: .nan}", "calibrate.metric.target: expected a finite number")]):
+        (tmp_path / f"c{i}.yaml").write_text(BASE + f"calibrate:\n  {calibrate}\n")
+        assert main(["calibrate", str(tmp_path / f"c{i}.yaml")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err, err
 
 
 def test_calibration_recovers_the_friction_angle_of_its_reference(study_dir, tmp_path):

@@ -159,12 +159,23 @@ def _section(study, label: str, trials_override: int | None) -> dict:
         if not file.is_file():
             raise UserError(f"{label}: calibrate.force.file: no file at {file}")
         f = {**f, "file": str(file.resolve())}
-        read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))  # bad files stop here
+        t_ref, _ = read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))  # bad files stop here
+        window = f.get("t")
+        if window is not None:  # the measured curve's window holds whatever a trial gives: checked once, here
+            if not (isinstance(window, list) and len(window) == 2 and all(_is_num(v) for v in window)
+                    and window[0] < window[1]):
+                raise UserError(f"{label}: calibrate.force.t: expected [t0, t1] in s with t0 < t1, got {window!r}")
+            inside = int(np.count_nonzero((t_ref >= window[0]) & (t_ref <= window[1])))
+            if inside < 3:
+                raise UserError(f"{label}: calibrate.force.t: {inside} measured samples in {window} (the file spans "
+                                f"{t_ref[0]:g}-{t_ref[-1]:g} s); at least 3 are needed")
         spec["force"] = f
     elif objective == "metric":
         m = c.get("metric")
-        if not (isinstance(m, dict) and isinstance(m.get("name"), str) and _is_num(m.get("target"))):
+        if not (isinstance(m, dict) and isinstance(m.get("name"), str) and "target" in m):
             raise UserError(f"{label}: calibrate.metric: required with objective metric: {{name, target}}")
+        if not _is_num(m["target"]):
+            raise UserError(f"{label}: calibrate.metric.target: expected a finite number, got {m['target']!r}")
         spec["metric"] = m
     elif objective == "terrain" and "terrain" not in study.reference and "against" not in study.reference:
         raise UserError(f"{label}: reference.terrain: required with objective terrain (the scan to match)")
