@@ -451,8 +451,8 @@ class MachineConfig(_Model):
                           "when there is one.")
     base_pose: BasePose = Field(default_factory=BasePose, description="Pose of base_link in the world.")
     fixed_base: Bool = Field(True, description="Weld base_link to the world (no tracks on the ground).")
-    initial_joints: JointAngles = Field(default_factory=dict, description="Joint name -> initial angle; a joint not given starts at 0, "
-                                                     "or at its limit nearest to 0.")
+    initial_joints: JointAngles = Field(default_factory=dict, description="Joint name -> initial angle; a joint "
+                                        "not given starts at 0, or at its limit nearest to 0.")
     initial_joints_deg: Optional[JointAnglesDeg] = Field(
         None, exclude=True, description="Joint name -> initial angle in degrees (may be combined with "
                                         "initial_joints for other joints).")
@@ -701,7 +701,7 @@ class BridgeConfig(_Model):
     address: Optional[Annotated[str, BeforeValidator(_NameRule(r"[^\s]{1,200}", "no spaces"))]] = Field(
         None, description="ros_tcp: the endpoint's HOST:PORT (null = 127.0.0.1:10000); ros1: the master URI "
                           "(null = ROS_MASTER_URI).")
-    namespace: Optional[Annotated[str, BeforeValidator(_NameRule(_ROS_NAME, "a ROS name: letters, digits, _ and /"))]] \
+    namespace: Optional[Annotated[str, BeforeValidator(_NameRule(_ROS_NAME, "letters, digits, _ and / (ROS)"))]] \
         = Field(None, description="Topic namespace of the machine; null = the machine's name (zx120).")
     rates: Annotated[dict[str, Rate], _none_to({})] = Field(
         default_factory=dict, description="Output topic key (joint_states, odom, base_link/pose, bucket/wrench, "

@@ -90,7 +90,8 @@ def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, capsys):
         assert (Path(r["run_dir"]) / "point.json").stat().st_mtime_ns == stamps[r["point"]]
     # a study none of whose points finished exits 1 (its table says why): here the bed of the 32 deg point, from the
     # cache, is stopped by a speed limit its settled grains exceed at once
-    spec = spec.replace(f"[26, 29, {TRUE_FRICTION_DEG:g}, 35, 95]", f"[{TRUE_FRICTION_DEG:g}]\n  soil.max_speed: [1e-6]")
+    spec = spec.replace(f"[26, 29, {TRUE_FRICTION_DEG:g}, 35, 95]",
+                        f"[{TRUE_FRICTION_DEG:g}]\n  soil.max_speed: [1e-6]")
     (study_dir / "none.yaml").write_text(spec.replace("name: friction", "name: none"))
     code = main(["study", str(study_dir / "none.yaml"), "--workers", "1", "--out", str(study_dir / "none")])
     assert code == 1
