@@ -235,4 +235,7 @@ def test_errors_name_the_file_and_what_is_wrong(tmp_path):
     assert "masses.elbow" in _one_line_error(good, config=config)
     config.write_text("joint: {}\n")
     assert "unknown key 'joint'" in _one_line_error(good, config=config)
-    assert "override" in _one_line_error(good, actuator_overrides={"hinge": {"max_torque": 0}})
+    # overrides are named as the scene's machine.actuators keys (model.py puts the machine's key in front)
+    assert _one_line_error(good, actuator_overrides={"hinge": {"max_torque": 0}}).startswith(
+        "actuators.hinge.max_torque")
+    assert "(did you mean 'hinge'?)" in _one_line_error(good, actuator_overrides={"hinje": {"max_torque": 1}})
