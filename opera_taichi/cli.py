@@ -209,8 +209,15 @@ def _cmd_validate_physics(args) -> int:
     return 1 if metrics["passed"] is False else 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in one line, as every other bad input (the usage is in --help)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="opera-taichi", description="Headless excavation simulator: Taichi soil + PyBullet excavator.")
     parser.add_argument("--version", action="version", version=f"opera-taichi {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -318,8 +325,8 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version (0) and usage errors (2)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     if args.command is None:
-        parser.print_usage(sys.stderr)
-        print("opera-taichi: error: a command is required (run, validate or validate-physics)", file=sys.stderr)
+        print("opera-taichi: error: a command is required (run, view, validate, runs, validate-physics, compare, "
+              "study or calibrate; see opera-taichi --help)", file=sys.stderr)
         return 2
     previous = None
     if threading.current_thread() is threading.main_thread():
