@@ -155,10 +155,13 @@ def _cmd_view(args) -> int:
 def _cmd_runs(args) -> int:
     from .runs import format_table, list_runs, write_csv
 
-    folder = Path(args.folder)
-    if not folder.is_dir():
+    folder = Path(args.folder or "runs")
+    if args.folder is None and not folder.exists():  # a fresh checkout: no run yet
+        rows = []
+    elif not folder.is_dir():
         raise UserError(f"runs: {folder} is not a folder")
-    rows = list_runs(folder)
+    else:
+        rows = list_runs(folder)
     if args.csv:
         write_csv(rows, sys.stdout)
     elif rows:
@@ -282,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
                                description="List the run folders under DIR (default runs/): name, scene, status "
                                            "(done, running, died, diverged, ...), simulated time, real-time factor, "
                                            "bucket load and peak force.")
-    runs.add_argument("folder", metavar="DIR", nargs="?", default="runs", help="folder to search (default runs)")
+    runs.add_argument("folder", metavar="DIR", nargs="?", default=None, help="folder to search (default runs)")
     runs.add_argument("--csv", action="store_true", help="CSV on stdout, for scripts")
     runs.set_defaults(handler=_cmd_runs)
     physics = commands.add_parser(

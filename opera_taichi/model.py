@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 
 # Bumped when the meaning of a checkpoint's arrays changes: an older checkpoint is then refused, not misread.
 CHECKPOINT_FORMAT = 1
+MIN_SOIL_DT = 1e-7   # s: a finer soil substep takes hours of wall time per simulated second (a stiffness typo)
 
 
 @dataclass(frozen=True)
@@ -264,6 +265,11 @@ def _build_soil(scene) -> SoilModel:
         dt = float(scene.sim.soil_dt)
     else:
         dt = float(micro.dt_limit)
+    if dt < MIN_SOIL_DT:
+        raise UserError(f"soil.overrides: these grains need a soil substep of {dt:.3g} s, {1.0 / dt:.3g} substeps per "
+                        f"simulated second (at most {1.0 / MIN_SOIL_DT:.0e}): lower youngs_modulus "
+                        f"({bulk.youngs_modulus:g} Pa), or raise density ({bulk.density:g} kg/m3) or radius "
+                        f"({bulk.radius:g} m)")
     lo, hi = np.asarray(soil.domain.min, float), np.asarray(soil.domain.max, float)
     for i, bed in enumerate(soil.bed):
         bmin, bmax = np.asarray(bed.min, float), np.asarray(bed.max, float)

@@ -156,3 +156,11 @@ def test_validate_physics_exits_1_when_its_gate_fails(monkeypatch, capsys, passe
     captured = capsys.readouterr()
     assert ("FAIL" in captured.out) == (passed is False)
     assert "coarser than the 20 the blade_cut gate is calibrated at" in captured.err
+
+
+def test_runs_in_a_fresh_checkout_lists_none_and_a_named_folder_must_exist(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)   # no runs/ yet
+    assert cli.main(["runs"]) == 0
+    assert capsys.readouterr().err == "no runs under runs\n"
+    assert cli.main(["runs", "nope"]) == 2
+    assert capsys.readouterr().err == "error: runs: nope is not a folder\n"

@@ -58,6 +58,8 @@ CASES = [
      ["machine.actuators.bom_joint", "not an actuated joint", "did you mean 'boom_joint'"]),
     ("soil_dt_unstable", "soil: {overrides: {radius: 0.08}}\nsim: {dt: 0.002, soil_dt: 0.002}\n", [],
      ["sim.soil_dt", "stability"]),
+    ("stiffness_typo", "soil: {overrides: {youngs_modulus: 1e20}}\n", [],
+     ["soil.overrides", "substeps per simulated second", "youngs_modulus"]),
     ("overrides_typo", "soil: {overrides: {radus: 0.05}}\n", [], ["soil.overrides.radus", "did you mean 'radius'"]),
     ("empty_file", "", [], ["empty file"]),
     ("comment_only", "# nothing here\n", [], ["empty file"]),

@@ -278,6 +278,8 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert code == 2 and "--transform: expected x,y,z,yaw_deg" in err
     code, err = _cli([tmp_path, "--terrain", tmp_path / "far.xyz"], capsys)
     assert code == 2 and "not a run folder" in err
+    code, err = _cli([run], capsys)
+    assert code == 2 and "nothing to compare the run with" in err and "\n" not in err
 
 
 def test_compare_command_runs_as_a_program(tmp_path):

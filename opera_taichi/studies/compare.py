@@ -378,6 +378,9 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
     """Compare a run folder with a scan and/or a joint log, or with another run; write comparison.json,
     profile.csv and the figures into `out` (default: the run folder). Returns the comparison."""
     run_dir = run_folder(run_dir, "RUN_DIR")
+    if against is None and terrain is None and joints is None:
+        raise UserError("compare: nothing to compare the run with; give --terrain SCAN, --joints LOG or --against "
+                        "RUN_DIR")
     if against is not None and (terrain or terrain_before or joints):
         raise UserError("--against: compares two runs; give it without --terrain, --terrain-before and --joints")
     if terrain_before is not None and terrain is None:
