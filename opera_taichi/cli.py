@@ -47,6 +47,8 @@ def _cmd_validate(args) -> int:
             from .ros.topics import topic_table
 
             topic_table(checked, scene.bridge)
+    for text in checked.warnings:  # what a run would warn about at its start
+        print(f"warning: {text}", file=sys.stderr)
     print(f"{args.scene}: ok")
     return 0
 

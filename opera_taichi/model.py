@@ -188,6 +188,20 @@ def _build_motion(motion, key: str, machine, kinematics, initial_q) -> JointProf
     raise UserError(f"{key}.type: unknown motion type {motion.type!r}")
 
 
+def _beyond_limits(key: str, machine: MachineModel) -> list[str]:
+    """A motion script that asks a joint past its limits (the run clips the targets) is said when it is checked."""
+    if machine.motion is None:
+        return []
+    motion_key = "motion" if key == "machine" else f"{key}.motion"
+    out = []
+    for joint, (low, high) in machine.motion.extremes().items():
+        lo, hi = machine.description.joint_limits.get(joint, (-math.inf, math.inf))
+        if low < lo - 1e-9 or high > hi + 1e-9:
+            out.append(f"{motion_key}: {joint} is asked {low:.4f}..{high:.4f} rad, beyond its limits "
+                       f"[{lo:.4f}, {hi:.4f}] rad; the run clips its targets to them")
+    return out
+
+
 def machine_entries(scene) -> list[tuple[str, object, object]]:
     """(key prefix, MachineConfig, motion) of every machine: `machine:` + `motion:`, or each of `machines:`."""
     if scene.machine is not None:
@@ -337,6 +351,7 @@ def build_model(scene) -> Model:
     tools = _build_tools(scene)
     soil = _build_soil(scene) if scene.soil is not None else None
     warnings = tuple(w for m in machines for w in m.description.warnings)
+    warnings += tuple(w for (key, _, _), m in zip(machine_entries(scene), machines) for w in _beyond_limits(key, m))
     return Model(name=scene.name, dt=float(scene.sim.dt), duration=float(scene.sim.duration),
                  seed=int(scene.sim.seed), machines=tuple(machines), soil=soil, tools=tools,
                  bindings=_bindings(machines, tools) if soil is not None else (), warnings=warnings,

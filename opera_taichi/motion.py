@@ -45,6 +45,15 @@ class JointProfile:
     def joints(self) -> list[str]:
         return list(self._curves)
 
+    def extremes(self) -> dict[str, tuple[float, float]]:
+        """Each joint's lowest and highest target: at a breakpoint (the monotone cubics and the lines between
+        breakpoints do not overshoot them)."""
+        out = {}
+        for joint, (times, first, last, coeffs) in self._curves.items():
+            values = [first, last] + [c[3] for c in coeffs]
+            out[joint] = (min(values), max(values))
+        return out
+
     def targets(self, t: float) -> dict[str, float]:
         out = {}
         for joint, (times, first, last, coeffs) in self._curves.items():

@@ -30,6 +30,7 @@ def fake_simulation(monkeypatch):
         calls["checked"] = scene
         if "raise" in calls:
             raise calls["raise"]
+        return types.SimpleNamespace(warnings=())
 
     from opera_taichi import model, runner
 

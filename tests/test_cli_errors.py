@@ -179,3 +179,14 @@ def test_a_bridge_flag_gives_the_bridge_its_kind_for_set_bridge_keys(monkeypatch
     rc = cli.main(["run", str(REPO / "scenes" / "zx120_dig_cycle.yaml"), "--ros1", "--set",
                    "bridge.rates.joint_states=50", "--out", str(tmp_path / "run")])
     _assert_one_line(rc, capsys.readouterr(), ["--ros1:"])
+
+
+def test_validate_warns_of_a_motion_beyond_the_joint_limits(capsys):
+    """Not an error (the run clips the targets, as a real machine's controller would), but said before the run."""
+    dig = str(REPO / "scenes" / "zx120_dig_cycle.yaml")
+    assert cli.main(["validate", dig]) == 0
+    assert capsys.readouterr().err == ""
+    assert cli.main(["validate", dig, "--set", "motion.waypoints.1.q_deg.boom_joint=300"]) == 0
+    out, err = capsys.readouterr()
+    assert out.strip().endswith(": ok")
+    assert err.startswith("warning: motion: boom_joint is asked ") and "5.2360 rad, beyond its limits" in err
