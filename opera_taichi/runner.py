@@ -422,8 +422,10 @@ def resume_scene(run_dir: Path):
         raise UserError(f"--resume: {run_dir} finished already (status done); nothing to resume")
     ckpt = latest_checkpoint(run_dir)
     if ckpt is None:
-        raise UserError(f"--resume: {run_dir} ({status}) has no checkpoint to resume from; it was run without "
-                        f"--checkpoint-every")
+        every = manifest.get("checkpoint_every")
+        why = (f"it stopped at {manifest.get('sim_time', 0):g} s, before its first checkpoint (every {every:g} s)"
+               if isinstance(every, (int, float)) else "it was run without --checkpoint-every")
+        raise UserError(f"--resume: {run_dir} ({status}) has no checkpoint to resume from; {why}")
     read_checkpoint_header(ckpt)
     data = dict(manifest["scene"])
     try:

@@ -148,3 +148,16 @@ def test_validate_refuses_what_would_fail_at_run_time(radius, words, capsys):
     assert main(["validate", EXCAVATION, "--set", f"soil.overrides.radius={radius}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {EXCAVATION}: soil.overrides.radius: ") and words in err[0], err
+
+
+@pytest.mark.parametrize("every, words", [(2.0, "it stopped at 0.5 s, before its first checkpoint (every 2 s)"),
+                                          (None, "it was run without --checkpoint-every")])
+def test_resume_without_a_checkpoint_says_why(tmp_path, capsys, every, words):
+    run = tmp_path / "run"
+    _fake_run(run, os.getpid(), status="interrupted")
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest.update(sim_time=0.5, **({"checkpoint_every": every} if every else {}))
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["run", "--resume", str(run), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no checkpoint to resume from" in err[0] and words in err[0], err
