@@ -213,3 +213,5 @@ def test_a_port_in_use_is_one_line_exit_2(run, capsys, tmp_path):
         assert not (tmp_path / "never" / "manifest.json").exists()
     _one_line_exit_2(capsys, ["run", str(SCENE), "--view-port", "8080"], "--view-port: only with --view")
     _one_line_exit_2(capsys, ["view", str(run), "--port", "70000"], "not a TCP port")
+    _one_line_exit_2(capsys, ["view", str(run), "--host", "192.0.2.1"], "--host: 192.0.2.1 is not an address of "
+                     "this machine")   # TEST-NET-1: documentation only, never a local address

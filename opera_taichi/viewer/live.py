@@ -40,6 +40,10 @@ def check_port(host: str, port: int, flag: str = "--view-port") -> None:
         try:
             s.bind(address)
         except OSError as exc:
+            if exc.errno == errno.EADDRNOTAVAIL:  # the host is none of this machine's addresses
+                host_flag = "--view-host" if flag.startswith("--view") else "--host"
+                raise UserError(f"{host_flag}: {host} is not an address of this machine ({exc.strerror}); give one "
+                                f"of its own, 127.0.0.1 or 0.0.0.0") from None
             why = "is in use" if exc.errno == errno.EADDRINUSE else f"cannot be opened ({exc.strerror})"
             raise UserError(f"{flag}: port {port} on {host} {why}; give another port") from None
 
