@@ -358,7 +358,8 @@ class SoilConfig(_Model):
     """The soil: a bed of pits cut into the ground and filled with particles."""
 
     model: _choice("dem", not_yet=("mpm",)) = Field("dem", description="Soil solver (only `dem` for now).")
-    preset: _choice(*SOIL_PRESETS) = Field("dirt", description="Bulk parameter preset (docs: reference/soil.md).")
+    preset: _choice(*SOIL_PRESETS) = Field("dirt", description="Bulk parameter preset (their values: the README's "
+                                           "Scenes section, opera_taichi/soil.py).")
     overrides: Annotated[dict[str, _num()], _none_to({})] = Field(
         default_factory=dict, description="Bulk parameters replacing the preset's (density, friction_angle, "
         "friction_angle_deg, cohesion, youngs_modulus, restitution, radius, rolling_resistance, "
