@@ -66,10 +66,17 @@ def as_control(value, machine_names: list[str], t: float) -> Control:
         if value and all(k in machine_names for k in value):
             return Control({k: v if isinstance(v, MachineControl) else MachineControl(q_target=dict(v))
                             for k, v in value.items()}, t, "python")
-        return Control({_only(machine_names): MachineControl(q_target={k: float(v) for k, v in value.items()})},
+        return Control({_only(machine_names): MachineControl(q_target={k: _as_float(v) for k, v in value.items()})},
                        t, "python")
     raise TypeError(f"a control is a Control, a MachineControl, a {{joint: rad}} dict or None, got "
                     f"{type(value).__name__}")
+
+
+def _as_float(value):
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return value  # refused, naming its joint, where the machine applies it
 
 
 def _only(names: list[str]) -> str:

@@ -151,7 +151,15 @@ class BulletMachine:
     def command(self, q_target=None, qd_target=None, track_speeds=None, hold=None) -> None:
         """Apply one step's commands: position targets (rad, clipped to the joint limits, a warning once per joint
         when clipped), velocity targets (rad/s, capped by the actuators), track speeds (m/s) and the emergency stop
-        (hold: True latches the current pose as the target of every joint until released with False)."""
+        (hold: True latches the current pose as the target of every joint until released with False). A target that is
+        no finite number is refused before anything is applied (it would turn the machine's state into NaN)."""
+        for kind, unit, values in (("target", "rad", q_target), ("speed target", "rad/s", qd_target)):
+            for name, value in (values or {}).items():
+                self._joint(name)
+                if not _finite(value):
+                    raise UserError(f"joint {kind}: {name} = {value!r} is not a finite number ({unit})")
+        if track_speeds is not None and not all(_finite(v) for v in track_speeds):
+            raise UserError(f"track speeds: {tuple(track_speeds)!r} are not finite numbers (m/s)")
         if hold is not None and bool(hold) != self._hold:
             self._hold = bool(hold)
             if self._hold:
@@ -363,3 +371,10 @@ class BulletMachine:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _finite(value) -> bool:
+    try:
+        return math.isfinite(float(value))
+    except (TypeError, ValueError):
+        return False

@@ -71,6 +71,20 @@ def test_a_control_for_an_unknown_machine_or_joint_is_a_clear_error(sim):
         sim.step({"stick": 0.0})
 
 
+def test_a_target_that_is_no_number_is_refused_and_the_machine_goes_on(sim):
+    """NaN would enter PyBullet's state for good (every later step diverging): refused before it is applied."""
+    _run(sim, 0.05)
+    before = sim.get_state()
+    for control in ({"boom_joint": float("nan")}, ot.MachineControl(qd_target={"arm_joint": float("inf")}),
+                    {"boom_joint": -0.5, "arm_joint": "high"}):
+        with pytest.raises(UserError, match=r"is not a finite number \(rad"):
+            sim.step(control)
+    after = sim.get_state()
+    assert after.t == before.t and np.array_equal(after.machines["zx120"].q, before.machines["zx120"].q)
+    _run(sim, 0.05, {"boom_joint": -0.5})   # and it steps on
+    assert np.all(np.isfinite(sim.machine.joint_states()[0]))
+
+
 def test_the_applied_control_is_part_of_the_state(sim):
     sim.step(ot.Control({"zx120": ot.MachineControl(q_target={"swing_joint": 0.2})}, source="test"))
     state = sim.get_state()
