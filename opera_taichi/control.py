@@ -118,6 +118,15 @@ class CallableController:
         return ctrl
 
 
+def driver_of(controller) -> str:
+    """What commands the machines, as the manifest records it: 'script' (the scene's motion scripts) or the
+    controller's own name for itself (`driver`, else `source`, else its class)."""
+    if controller is None or isinstance(controller, ScriptController):
+        return "script"
+    return (getattr(controller, "driver", None) or getattr(controller, "source", None)
+            or type(controller).__name__)
+
+
 class HoldController:
     """Commands nothing new: every machine keeps its last targets (its initial pose at the start)."""
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .control import ScriptController
+from .control import ScriptController, driver_of
 from .errors import DivergenceError, UserError
 from .model import build_model
 from .observers import (Checkpointer, Heartbeat, JointsCsv, Observer, ObserverBus, RunContext, SoilMassCsv,
@@ -266,11 +266,17 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
     arch = arch or scene.sim.arch
     if resume:
         previous, data = run_folder_status(out)
+        driven = data.get("driver", "script")
+        if driven != "script" and driver_of(controller) == "script":
+            raise UserError(f"--resume: {out} was driven by {driven}, not its scene's motion script; resume it with "
+                            f"that driver (a ROS bridge: --ros1 or --ros-tcp; the sliders: --view; Python: "
+                            f"run_scene(..., controller=..., resume=True))")
         manifest = Manifest(out / "manifest.json", data)
         manifest.data.update(status="running", pid=os.getpid(), host=socket.gethostname(), heartbeat=now_iso(),
                              status_before_resume=previous)
     else:
         manifest = Manifest(out / "manifest.json", _new_manifest(scene, model))
+        manifest.data["driver"] = driver_of(controller)
     if checkpoint_every is not None:
         manifest.data["checkpoint_every"] = float(checkpoint_every)
     manifest.write()

@@ -161,3 +161,28 @@ def test_resume_without_a_checkpoint_says_why(tmp_path, capsys, every, words):
     assert main(["run", "--resume", str(run), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has no checkpoint to resume from" in err[0] and words in err[0], err
+
+
+def test_a_run_driven_from_python_resumes_only_with_a_driver(tmp_path, capsys):
+    """Resumed by the CLI with no driver, the scene's motion script would have taken over without a word."""
+    import opera_taichi as ot
+    from opera_taichi.scene import load_scene
+
+    def driver(sim, t):
+        if t > 0.3:
+            raise KeyboardInterrupt
+        return {"boom_joint": -0.8 + 0.1 * t}
+
+    out = tmp_path / "run"
+    scene = load_scene(DIG, ["sim.duration=0.5", "output.plots=false"])
+    with pytest.raises(KeyboardInterrupt):
+        ot.run_scene(scene, out_dir=out, quiet=True, controller=ot.CallableController(driver), checkpoint_every=0.1)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "interrupted" and manifest["driver"] == "python"
+    assert main(["run", "--resume", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "was driven by python, not its scene's motion script" in err[0], err
+    steady = ot.CallableController(lambda sim, t: {"boom_joint": -0.8 + 0.1 * min(t, 0.3)})
+    result = ot.run_scene(load_scene(DIG, ["sim.duration=0.5", "output.plots=false"]), out_dir=out, quiet=True,
+                          controller=steady, resume=True)
+    assert result.status == "done"

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from ..control import Control, MachineControl, ScriptController
+from ..control import Control, MachineControl, ScriptController, driver_of
 from ..errors import UserError
 from ..observers import ThreadedObserver
 from .frames import capture, scene_info
@@ -176,6 +176,10 @@ class ViewerController:
 
     def __init__(self, view: LiveView, inner=None):
         self.view, self.inner = view, inner
+
+    @property
+    def driver(self) -> str:
+        return "teleop" if self.view.teleop else driver_of(self.inner)
 
     def control(self, sim, t: float) -> Control:
         while not self.view.running.wait(0.1):   # wait in short slices, so Ctrl-C and SIGTERM end the run at once
