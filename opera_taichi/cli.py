@@ -177,6 +177,10 @@ def _cmd_validate_physics(args) -> int:
     from .validation import cases
 
     cases.grains_across(cases.CASES[0], args.resolution)  # a bad --resolution stops here, before any run
+    if args.overwrite and args.case in ("all", "resolution"):
+        raise UserError(f"--overwrite: only for a single case (`{args.case}` runs again what --resume does not keep)")
+    if args.resume and args.report_only:
+        raise UserError("--resume, --report-only: give one (--report-only runs nothing, --resume runs what is missing)")
     for flag, given in (("--resume", args.resume), ("--report-only", args.report_only)):
         if given and args.case not in ("all", "resolution"):
             raise UserError(f"{flag}: only with `all` or `resolution` (a single case always runs)")
@@ -200,6 +204,9 @@ def _cmd_validate_physics(args) -> int:
             print(f"FAIL: {len(failed)} gate(s) failed: {'; '.join(failed)} (see {path})", file=sys.stderr)
             return 1
         return 0
+    if args.out is not None and (Path(args.out) / "metrics.json").is_file() and not args.overwrite:
+        raise UserError(f"--out: {args.out} holds a finished case already; use --overwrite to replace it, or another "
+                        f"folder")
     metrics = cases.run_case(args.case, args.param, resolution=args.resolution, out_dir=args.out, arch=args.arch,
                              quiet=args.quiet)
     if not args.quiet:
@@ -305,6 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="particle size: a named resolution, or N particle diameters across the case's key "
                               "length (3-64; e.g. 24 for a blade convergence run on a GPU)")
     physics.add_argument("--out", metavar="DIR", help="output folder (default: runs/validate-<case>-<time>)")
+    physics.add_argument("--overwrite", action="store_true",
+                         help="a single case: replace the case run already in --out")
     physics.add_argument("--report", metavar="FILE",
                          help="report written by `all` (default docs/validation.md) or `resolution` (default "
                               "docs/resolution.md); plots go beside it in <stem>/")

@@ -304,12 +304,19 @@ def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, mo
     assert any(row.startswith(f"| {label} |") and "| 3000 |" in row for row in rows)
     not_run = [row.split("|")[1].strip() for row in rows if "not run" in row]
     assert not_run == [lb for lb, _, _ in report.gate_set() if lb != label]
+    # with no finished run there is nothing to report: the report there is left as it is
+    kept = path.read_text()
+    with pytest.raises(UserError, match="--report-only: no finished run of the gate set in"):
+        report.run_all("coarse", tmp_path / "empty", tmp_path / "v.md", report_only=True)
+    assert path.read_text() == kept
 
 
 @pytest.mark.parametrize("flag", ["--resume", "--report-only"])
 def test_resume_and_report_only_are_only_for_the_gate_set(flag, capsys):
     assert main(["validate-physics", "repose", flag]) == 2
     assert f"{flag}: only with `all` or `resolution`" in capsys.readouterr().err
+    assert main(["validate-physics", "all", "--resume", "--report-only"]) == 2
+    assert "--resume, --report-only: give one" in capsys.readouterr().err
 
 
 def test_a_kept_run_is_measured_again_with_the_current_code(tmp_path):
@@ -406,3 +413,49 @@ def test_resolution_study_gates_follow_the_issue(tmp_path):
     path = resolution.write_study(results, list(gates.values()), tmp_path / "r.md", "cmd")
     text = path.read_text()
     assert "| 4 |" in text and "not run" in text and "FAIL" in text
+
+
+def test_a_preset_gives_the_blade_and_wall_its_strength_unless_given():
+    """--param preset=dirt: the cut and its reference take dirt's friction, density and cohesion."""
+    from opera_taichi.soil import PRESETS
+
+    dirt = PRESETS["dirt"]
+    p = cases.parse_params("blade_cut", ["preset=dirt"])
+    assert (p["friction_deg"], p["density"], p["cohesion"]) == pytest.approx(
+        (math.degrees(dirt["friction_angle"]), dirt["density"], dirt["cohesion"]))
+    assert cases.parse_params("blade_cut", ["preset=dirt", "friction_deg=30"])["friction_deg"] == 30.0
+    assert cases.parse_params("passive_wall", ["preset=gravel"])["density"] == PRESETS["gravel"]["density"]
+    assert cases.parse_params("blade_cut", [])["friction_deg"] == 35.0   # the gates' sand, as before
+
+
+def test_rolling_resistance_is_a_parameter_of_the_flow_and_strength_cases(tmp_path):
+    """Calibration step 2 (docs/validation.md) tunes it with the heap and the column: it reaches the soil, and the
+    default leaves the overrides (so kept runs) as they were."""
+    for case in ("repose", "column_collapse", "blade_cut", "passive_wall"):
+        sets, _ = cases.build_overrides(case, cases.parse_params(case, ["rolling_resistance=0.2"]), "coarse",
+                                        work_dir=tmp_path)
+        assert '"rolling_resistance": 0.2' in next(x for x in sets if x.startswith("soil.overrides=")), case
+        sets, _ = cases.build_overrides(case, cases.parse_params(case, []), "coarse", work_dir=tmp_path)
+        assert "rolling_resistance" not in next(x for x in sets if x.startswith("soil.overrides=")), case
+    with pytest.raises(UserError, match="--param rolling_resistance: expected a number between 0 and 1"):
+        cases.parse_params("repose", ["rolling_resistance=2"])
+
+
+def test_a_kept_run_folder_can_be_moved(tmp_path):
+    """The blade's mesh is written in its run's folder and named by its content: a moved folder is the same run."""
+    p = cases.parse_params("blade_cut", [])
+    here, _ = cases.build_overrides("blade_cut", p, "coarse", work_dir=tmp_path / "here")
+    there, _ = cases.build_overrides("blade_cut", p, "coarse", work_dir=tmp_path / "there")
+    assert here != there and cases.same_overrides(here, there)
+    other, _ = cases.build_overrides("blade_cut", cases.parse_params("blade_cut", ["rake_deg=60"]), "coarse",
+                                     work_dir=tmp_path / "there")
+    assert not cases.same_overrides(here, other)
+
+
+def test_a_single_case_does_not_replace_the_run_in_its_out_folder(tmp_path, capsys):
+    (tmp_path / "metrics.json").write_text("{}")
+    assert main(["validate-physics", "repose", "--out", str(tmp_path)]) == 2
+    assert "holds a finished case already; use --overwrite" in capsys.readouterr().err
+    assert (tmp_path / "metrics.json").read_text() == "{}"
+    assert main(["validate-physics", "all", "--overwrite"]) == 2
+    assert "--overwrite: only for a single case" in capsys.readouterr().err

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from . import references as ref
+from ..errors import UserError
 from .cases import finished_metrics, run_case, travel_average
 
 SAND = {"friction_deg": 35.0, "density": 1700.0, "preset": "sand"}
@@ -56,6 +57,9 @@ def run_all(resolution: str = "default", out_dir=None, report_path="docs/validat
             print(f"{label}: finished run kept from {out / label}")
         m["label"] = label
         results.append(m)
+    if report_only and not results:  # a report of nothing would replace the one there
+        raise UserError(f"--report-only: no finished run of the gate set in {out} (at resolution {resolution}); "
+                        f"nothing to report")
     command = f"opera-taichi validate-physics all --resolution {resolution} --out {out}"
     if str(report_path) != "docs/validation.md":
         command += f" --report {report_path}"
@@ -291,9 +295,9 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
-   `opera-taichi validate-physics repose --param preset=NAME`, changing `soil.rolling_resistance` through a
-   preset override, until the run-out sits in the Lube/Lajeunesse band and the heap matches the measured repose
-   angle. The heap is poured through a hopper whose outlet rides on its apex (a lifted column collapses and
+   `opera-taichi validate-physics repose --param preset=NAME`, with `--param rolling_resistance=VALUE` (both cases,
+   and the blade and the wall, take it instead of the mapping's), until the run-out sits in the Lube/Lajeunesse band
+   and the heap matches the measured repose angle; a scene takes the value as `soil.overrides.rolling_resistance`. The heap is poured through a hopper whose outlet rides on its apex (a lifted column collapses and
    leaves a rounded top 4-6 deg flatter than its flanks). Above ~0.35 poured beds become very loose (solid
    fraction below 0.4) and weak; below ~0.12 heaps stay near 20 deg. The default's exponent comes from two
    heaps at the default resolution: sand (33 deg) stands at 32.7 deg with 0.3; glass beads (22 deg) at 24.2 deg

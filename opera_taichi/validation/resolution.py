@@ -21,6 +21,7 @@ import math
 from datetime import datetime
 from pathlib import Path
 
+from ..errors import UserError
 from .cases import finished_metrics, run_case
 from .report import SAND
 
@@ -52,6 +53,8 @@ def run_study(out_dir=None, report_path="docs/resolution.md", arch=None, quiet: 
             m = run_case(case, params, res, out / label, arch=arch, quiet=quiet)
         if m is not None:
             results[label] = m
+    if report_only and not results:  # a report of nothing would replace the one there
+        raise UserError(f"--report-only: no finished run of the study in {out}; nothing to report")
     twenty = finished_metrics("blade_cut", {k: str(v) for k, v in {**SAND, "depth": 0.3, "rake_deg": 90.0,
                                                                      "delta_deg": 0.0}.items()}, "default",
                               GATE_RUN_20)
