@@ -87,16 +87,34 @@ def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--radii", default="0.16,0.12,0.08,0.05")
+    def radii(text: str) -> list[float]:
+        try:
+            values = [float(r) for r in text.split(",")]
+        except ValueError:
+            values = []
+        if not values or not all(0.0 < v < 1.0 for v in values):
+            raise argparse.ArgumentTypeError(f"expected grain radii in m, comma separated, got {text!r}")
+        return values
+
+    def positive(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = 0.0
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"expected a positive number of simulated seconds, got {text!r}")
+        return value
+
+    parser.add_argument("--radii", type=radii, default="0.16,0.12,0.08,0.05")
     parser.add_argument("--site", action="store_true", help="also the 20 m site at 8 cm")
     parser.add_argument("--sleep", choices=("both", "on", "off"), default="both")
-    parser.add_argument("--arch", default="cpu")
-    parser.add_argument("--duration", type=float, default=25.0)
+    parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda", "auto"))
+    parser.add_argument("--duration", type=positive, default=25.0)
     parser.add_argument("--repeat", type=int, default=1, help="runs per row: the median RTF and its range")
     parser.add_argument("--spin-wait", action="store_true", help="sim.spin_wait: keep the other cores running")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
-    runs = [(ROOT / "scenes" / "zx120_excavation.yaml", float(r)) for r in args.radii.split(",")]
+    runs = [(ROOT / "scenes" / "zx120_excavation.yaml", r) for r in args.radii]
     if args.site:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
     if args.repeat < 1:

@@ -101,11 +101,17 @@ class ZX120DigEnv(gym.Env):
                              f"{self.dt} s")
         self.control_period = self.n_sub * self.dt
         self.max_episode_seconds = float(max_episode_seconds)
+        if not self.max_episode_seconds >= self.control_period:
+            raise ValueError(f"max_episode_seconds: expected at least one control period ({self.control_period} s), "
+                             f"got {max_episode_seconds}")
         self.max_steps = int(math.ceil(self.max_episode_seconds / self.control_period - 1e-9))
         self.reward_fn = reward_fn or dig_reward
         self.energy_coef = float(energy_coef)
         self.init_noise = float(init_noise)
         self.patch_cells, self.patch_cell = int(patch_cells), float(patch_cell)
+        if self.patch_cells < 1 or self.patch_cells != patch_cells or not self.patch_cell > 0:
+            raise ValueError(f"patch_cells, patch_cell: expected a whole number >= 1 of cells of a positive size (m), "
+                             f"got {patch_cells}, {patch_cell}")
         self.arch = arch
         self._tool = next(i for i, b in enumerate(self.model.bindings)
                           if b.owner == mm.name and b.link in mm.description.soil_links)
@@ -172,7 +178,7 @@ class ZX120DigEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         if self._diverged is not None:
             raise RuntimeError(f"the simulation diverged ({self._diverged}); call reset()")
-        action = np.asarray(action, dtype=np.float64).reshape(-1)
+        action = np.asarray(action, dtype=np.float64)
         if action.shape != (len(self.joint_names),) or not np.all(np.isfinite(action)):
             raise ValueError(f"action: expected {len(self.joint_names)} finite joint velocities (rad/s), got {action}")
         action = np.clip(action, -self.max_speed, self.max_speed)

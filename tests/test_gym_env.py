@@ -177,3 +177,13 @@ def test_bad_arguments_are_refused():
         opera_taichi.ZX120DigEnv(control_period=0.0015)
     with pytest.raises(ValueError, match="render"):
         opera_taichi.ZX120DigEnv(render_mode="human")
+    with pytest.raises(ValueError, match="max_episode_seconds: expected at least one control period"):
+        opera_taichi.ZX120DigEnv(max_episode_seconds=-1)
+    with pytest.raises(ValueError, match="patch_cells, patch_cell"):
+        opera_taichi.ZX120DigEnv(patch_cells=0)
+
+
+def test_an_action_of_another_shape_is_refused(env):
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action: expected 4 finite joint velocities"):
+        env.step(np.zeros((1, 4)))
