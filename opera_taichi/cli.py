@@ -177,6 +177,10 @@ def _cmd_validate_physics(args) -> int:
     from .validation import cases
 
     cases.grains_across(cases.CASES[0], args.resolution)  # a bad --resolution stops here, before any run
+    if args.report is not None and args.case not in ("all", "resolution"):
+        raise UserError("--report: only with `all` or `resolution` (a single case writes OUT/metrics.json)")
+    if args.case == "resolution" and args.resolution != "default":
+        raise UserError("--resolution: not with `resolution` (it runs each case at the grain sizes people use)")
     if args.overwrite and args.case in ("all", "resolution"):
         raise UserError(f"--overwrite: only for a single case (`{args.case}` runs again what --resume does not keep)")
     if args.resume and args.report_only:

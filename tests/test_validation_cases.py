@@ -459,3 +459,7 @@ def test_a_single_case_does_not_replace_the_run_in_its_out_folder(tmp_path, caps
     assert (tmp_path / "metrics.json").read_text() == "{}"
     assert main(["validate-physics", "all", "--overwrite"]) == 2
     assert "--overwrite: only for a single case" in capsys.readouterr().err
+    assert main(["validate-physics", "repose", "--report", str(tmp_path / "r.md")]) == 2
+    assert "--report: only with `all` or `resolution`" in capsys.readouterr().err
+    assert main(["validate-physics", "resolution", "--resolution", "fine"]) == 2
+    assert "--resolution: not with `resolution`" in capsys.readouterr().err
