@@ -336,7 +336,10 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
     finally:
         wall = time.perf_counter() - wall_start
         done = (sim.t - t_start) if sim is not None else 0.0
+        # wall time and real-time factor are this process's: a resumed run's simulated time so far is sim_time,
+        # of which this process ran sim_time_this_run_s
         manifest.data.update(sim_time=round(sim.t, 9) if sim is not None else 0.0, wall_time_s=round(wall, 3),
+                             sim_time_this_run_s=round(done, 9),
                              real_time_factor=(done / wall) if wall > 0 and done > 0 else None)
         if sim is not None and sim.soil is not None:
             manifest.data["particle_steps_per_s"] = (sim.soil.n_particles * done / sim.soil.dt / wall) \
