@@ -362,12 +362,19 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
 def write_plots(out: Path, joints, limits=None, density=None) -> None:
     from . import plots
 
+    def sampled(name: str) -> bool:  # a header and at least one row (a run that ended at once has none)
+        try:
+            with open(out / name, "rb") as fh:
+                return sum(1 for _ in zip(range(2), fh)) == 2
+        except OSError:
+            return False
+
     try:
-        if (out / "joints.csv").is_file() and joints:
+        if sampled("joints.csv") and joints:
             plots.plot_joints(out / "joints.csv", joints, out / "joints.png", limits=limits)
-        if (out / "tool_wrench.csv").is_file():
+        if sampled("tool_wrench.csv"):
             plots.plot_tool_wrench(out / "tool_wrench.csv", out / "tool_wrench.png")
-        if (out / "soil_mass.csv").is_file():
+        if sampled("soil_mass.csv"):
             plots.plot_soil_mass(out / "soil_mass.csv", out / "soil_mass.png", density=density)
         if (out / "terrain_initial.npz").is_file() and (out / "terrain_final.npz").is_file():
             plots.plot_terrain(dict(np.load(out / "terrain_initial.npz")), dict(np.load(out / "terrain_final.npz")),

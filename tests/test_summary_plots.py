@@ -286,3 +286,15 @@ def test_list_runs_finds_the_run_and_a_dead_one(run):
     assert [r["status"] for r in back] == ["died", "done"]
     assert math.isclose(float(back[1]["bucket_kg"]), done["bucket_kg"], rel_tol=1e-12)
     assert back[0]["bucket_kg"] == ""
+
+
+def test_plots_of_files_with_no_rows_are_left_out_quietly(tmp_path, capsys):
+    """A run that ended before its first sample (an observer that could not start): no plot, no warning."""
+    from opera_taichi.runner import write_plots
+
+    (tmp_path / "joints.csv").write_text("t,boom_joint.q\n")
+    (tmp_path / "tool_wrench.csv").write_text("t,tool,fx,fy,fz,tx,ty,tz\n")
+    (tmp_path / "soil_mass.csv").write_text("t,mass_kg\n")
+    write_plots(tmp_path, ["boom_joint"])
+    assert capsys.readouterr().err == ""
+    assert not list(tmp_path.glob("*.png"))
