@@ -110,8 +110,9 @@ P_SQRT_KTOOL = 26
 P_WALL_TOP = 27   # top of the pit walls: 0 (the ground), raised while a bed is poured so nothing spills
 P_ADH_F = 28      # soil-tool adhesion: attraction at contact and added tangential capacity, N
 P_ADH_D = 29      # adhesion range beyond contact, m
-# Sleeping: a particle quiet (speed and r x spin below sqrt(P_SLEEP_V2), no tool contact) for P_SLEEP_STEPS substeps
-# in a row sleeps: it is neither integrated nor are its pairs with other sleepers evaluated (their springs keep
+# Sleeping: a particle quiet (speed and r x spin below sqrt(P_SLEEP_V2), no tool contact, and not in the bounding
+# sphere of a tool moving slower than the wake speed: a load a tool creeps with would press into sleepers that never
+# wake) for P_SLEEP_STEPS substeps in a row sleeps: it is neither integrated nor are its pairs with other sleepers evaluated (their springs keep
 # their values: neither side moves). It wakes when a tool comes within r + skin of it, or when a touching neighbour
 # moves faster than WAKE_FACTOR x the quiet speed. P_SLEEP_STEPS 0: nothing sleeps (the default).
 P_SLEEP_STEPS = 30
@@ -549,6 +550,21 @@ def _sphere_centre(tools: ti.template(), t, rot):
 
 
 @ti.func
+def _near_a_slow_tool(x, tools: ti.template(), v_wake):
+    """Whether x lies in the bounding sphere of an active tool's SDF grid whose points move slower than v_wake: a
+    tool that carries or presses soil that slowly would never wake the sleepers it pushes against."""
+    near = False
+    for t in range(MAX_TOOLS):
+        if tools[t, T_ON] > 0.0:
+            r_bs = tools[t, T_BS + 3]
+            d = x - _sphere_centre(tools, t, _tool_rotation(tools, t))
+            vel = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2])
+            ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
+            near = near or (d.dot(d) < r_bs * r_bs and vel.norm() + ang.norm() * r_bs < v_wake)
+    return near
+
+
+@ti.func
 def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
     """Whether a world box may meet tool t's SDF grid (sample_sdf is HUGE outside it, so no grain outside can touch
     or wake): the box against the grid's bounding sphere, then against the grid box along the tool's three axes
@@ -890,6 +906,9 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                             if (tool_bits & TOOL_MASK) == 0 and speed2 < prm[P_SLEEP_V2] and \
                                     w.dot(w) * r * r < prm[P_SLEEP_V2]:
                                 calm = ti.min((tool_bits >> CALM_SHIFT) + 1, CALM_MAX)
+                                if calm >= sleep_steps and _near_a_slow_tool(
+                                        x, tools, ti.sqrt(WAKE_FACTOR2 * prm[P_SLEEP_V2])):
+                                    calm = sleep_steps - 1  # a slow tool's load or ground: it would press sleepers
                                 if calm >= sleep_steps:  # falls asleep at rest
                                     kin[i, 1] = vec3(0.0)
                                     kin[i, 2] = vec3(0.0)

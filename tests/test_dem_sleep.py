@@ -63,6 +63,24 @@ def freeze_any_bed(monkeypatch):
     monkeypatch.setattr(dem_soil, "FREEZE_LAYERS", 1)
 
 
+def test_a_held_load_weighs_on_the_bucket_what_it_weighs(tmp_path):
+    """The main job's path at 12 cm, then 4 s of holding the load: the joints creep to rest slower than soil wakes.
+    Had the load's top fallen asleep, the creeping bucket pressed into grains that never woke and the soil's force
+    on it grew to 2.9 x the load's weight and stayed there; asleep nowhere near a slow tool, it is the weight."""
+    out = tmp_path / "held"
+    assert main(["run", SCENE, "--quiet", "--out", str(out), "--set", f"soil.overrides.radius={RADIUS}",
+                 "--set", "sim.duration=29", "--set", "output.plots=false"]) == 0
+    wrench = read_csv_columns(out / "tool_wrench.csv")
+    held_kg = read_csv_columns(out / "soil_mass.csv")["in_bucket_link_kg"][-1]
+    t, fz = np.asarray(wrench["t"]), np.asarray(wrench["fz"])
+    holding = t >= 26.0
+    assert held_kg > 100.0
+    # everything in the bucket's hull, nothing else on it: its weight to a percent, all along the hold
+    np.testing.assert_allclose(-fz[holding], held_kg * 9.81, rtol=0.01)
+    fx, fy = np.asarray(wrench["fx"])[holding], np.asarray(wrench["fy"])[holding]
+    assert np.max(np.hypot(fx, fy)) < 0.01 * held_kg * 9.81
+
+
 def test_a_blade_cuts_sleeping_soil_with_the_same_draft(monkeypatch):
     """The steady draft of a blade 0.24 m deep (4 cm grains) with and without sleeping, and with the soil far from
     the blade frozen: within 5%. (The bucket's force on the compressed dig above is too chaotic to compare one run
