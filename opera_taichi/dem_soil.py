@@ -91,7 +91,7 @@ def _check_beds(beds, lo, hi, r_max) -> list[tuple[np.ndarray, np.ndarray]]:
         raise UserError(f"soil.bed: at most {dem.MAX_PITS} beds, got {len(beds)}")
     out = []
     for i, bed in enumerate(beds):
-        key = f"soil.bed[{i}]"
+        key = f"soil.bed.{i}"
         try:
             b_min, b_max = bed
         except (TypeError, ValueError):
@@ -110,7 +110,7 @@ def _check_beds(beds, lo, hi, r_max) -> list[tuple[np.ndarray, np.ndarray]]:
                             f"got {(b_max - b_min).tolist()}")
         for j, (o_min, o_max) in enumerate(out):
             if np.all(b_min[:2] < o_max[:2]) and np.all(o_min[:2] < b_max[:2]):
-                raise UserError(f"{key}: overlaps soil.bed[{j}] in plan view; beds must not overlap")
+                raise UserError(f"{key}: overlaps soil.bed.{j} in plan view; beds must not overlap")
         out.append((b_min, b_max))
     return out
 
@@ -350,6 +350,7 @@ class DemSoil:
         m = soil.params
         r_max = m.radius * (1.0 + m.polydispersity)
         lo, hi = np.asarray(soil.domain_min, float), np.asarray(soil.domain_max, float)
+        _check_beds(list(soil.beds), lo, hi, r_max)  # (overlaps, counts: what building the soil would refuse)
         for i, (b_min, b_max) in enumerate(soil.beds):
             side = float(np.min(np.asarray(b_max) - np.asarray(b_min)))
             if side < 4.0 * r_max:
@@ -889,7 +890,7 @@ class DemSoil:
             layers = int(math.ceil(target / (nx * ny)))
             top = inner_lo[2] + (layers - 1) * s
             if top > self.domain_max[2] - r_max:
-                raise UserError(f"soil.domain.max: z = {self.domain_max[2]:g} leaves no room to pour soil.bed[{i}] "
+                raise UserError(f"soil.domain.max: z = {self.domain_max[2]:g} leaves no room to pour soil.bed.{i} "
                                 f"(its particles start up to z = {top + r_max:.3g})")
             xs = inner_lo[0] + s * np.arange(nx) + (inner_hi[0] - inner_lo[0] - s * (nx - 1)) / 2
             ys = inner_lo[1] + s * np.arange(ny) + (inner_hi[1] - inner_lo[1] - s * (ny - 1)) / 2

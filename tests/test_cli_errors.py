@@ -58,6 +58,8 @@ CASES = [
      ["machine.actuators.bom_joint", "not an actuated joint", "did you mean 'boom_joint'"]),
     ("soil_dt_unstable", "soil: {overrides: {radius: 0.08}}\nsim: {dt: 0.002, soil_dt: 0.002}\n", [],
      ["sim.soil_dt", "stability"]),
+    ("beds_overlap", "soil: {bed: [{min: [3, -1.6, -1], max: [6, 1.4, 0]}, {min: [5, -1, -1], max: [9, 1, 0]}]}\n", [],
+     ["soil.bed.1: overlaps soil.bed.0 in plan view"]),
     ("stiffness_typo", "soil: {overrides: {youngs_modulus: 1e20}}\n", [],
      ["soil.overrides", "substeps per simulated second", "youngs_modulus"]),
     ("overrides_typo", "soil: {overrides: {radus: 0.05}}\n", [], ["soil.overrides.radus", "did you mean 'radius'"]),

@@ -120,10 +120,10 @@ def test_soil_rejects_bad_beds_domain_and_dt(taichi_cpu):
     micro = bulk_to_micro(resolve_soil("sand", {"radius": 0.02}))
     domain = dict(domain_min=(-1, -1, -1), domain_max=(1, 1, 1))
     cases = [
-        (dict(beds=[((-0.5, -0.5, -0.3), (1.5, 0.5, 0.0))], **domain), r"^soil.bed\[0\]: .* not inside the domain"),
-        (dict(beds=[((-0.5, -0.5, -0.3), (0.5, 0.5, 0.1))], **domain), r"^soil.bed\[0\].max: .*z <= 0"),
+        (dict(beds=[((-0.5, -0.5, -0.3), (1.5, 0.5, 0.0))], **domain), r"^soil.bed.0: .* not inside the domain"),
+        (dict(beds=[((-0.5, -0.5, -0.3), (0.5, 0.5, 0.1))], **domain), r"^soil.bed.0.max: .*z <= 0"),
         (dict(beds=[((0, 0, -0.3), (0.5, 0.5, 0)), ((0.2, 0.2, -0.3), (0.7, 0.7, 0))], **domain),
-         r"^soil.bed\[1\]: overlaps soil.bed\[0\]"),
+         r"^soil.bed.1: overlaps soil.bed.0"),
         (dict(beds=[], domain_min=(0, 0, 0), domain_max=(1, -1, 1)), r"^soil.domain: expected min < max"),
         (dict(beds=[], dt=1.0, **domain), r"^sim.soil_dt: "),
         (dict(beds=[], max_speed=-1, **domain), r"^soil.max_speed: "),
