@@ -218,7 +218,7 @@ def _cmd_validate_physics(args) -> int:
         print(f"{metrics['case']}: {metrics['metric']} = {metrics['measured']:.4g} (reference "
               f"{metrics['reference']:.4g}{'' if rel is None else f', error {rel:+.1%}'}) "
               f"{'no gate' if metrics['passed'] is None else 'PASS' if metrics['passed'] else 'FAIL'}; "
-              f"{Path(metrics['run_dir']).parent / 'metrics.json'}")
+              f"{Path(metrics.get('folder') or Path(metrics['run_dir']).parent) / 'metrics.json'}")
     coarse = cases.coarser_than_gate(args.case, args.param, args.resolution)
     if coarse and not args.quiet:
         print(f"note: {coarse}", file=sys.stderr)

@@ -463,3 +463,21 @@ def test_a_single_case_does_not_replace_the_run_in_its_out_folder(tmp_path, caps
     assert "--report: only with `all` or `resolution`" in capsys.readouterr().err
     assert main(["validate-physics", "resolution", "--resolution", "fine"]) == 2
     assert "--resolution: not with `resolution`" in capsys.readouterr().err
+
+
+def test_critical_height_from_the_command_line_says_its_result_and_where(tmp_path, monkeypatch, capsys):
+    """The cuts stand by a rule here (below 0.8 x Culmann's), not by running them: the command's own path."""
+    hc = cases.culmann_height("dirt")
+    real = cases.run_case
+
+    def run_case(case, params, resolution="default", out_dir=None, **kw):
+        if case != "vertical_cut":
+            return real(case, params, resolution, out_dir, **kw)
+        return {"measured": float(params["height"]) < 0.8 * hc, "particles": 100, "wall_time_s": 0.1,
+                "particle_radius_m": 0.05}
+
+    monkeypatch.setattr(cases, "run_case", run_case)
+    assert main(["validate-physics", "critical_height", "--resolution", "coarse", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out[-1].startswith("critical_height: critical_height = ") and "PASS" in out[-1]
+    assert out[-1].endswith(str(tmp_path / "metrics.json"))

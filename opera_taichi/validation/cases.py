@@ -609,6 +609,7 @@ def _critical_metrics(p: dict, resolution: str, out: Path, cut, particles_of) ->
                "parameters": _si_params(p), "resolution": resolution, "n_across": geo_n,
                "bracket_m": [found["low"], found["high"]],
                "cuts": [{"height_over_culmann": k, "stood": stood} for k, stood in found["tried"]],
+               "folder": str(out),   # (a run folder per cut, out/h<k>/run)
                **particles_of()}
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float) + "\n")
