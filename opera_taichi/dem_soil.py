@@ -52,6 +52,7 @@ FREEZE_RETRY = 0.5         # s
 FREEZE_SOON = 0.05         # s: sooner when the substeps list less than half of what they listed at the last try
 FREEZE_LAYERS = 6          # layers of particles kept live around each unfrozen one (a moving one wakes its partners)
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
+START_TIME = 0.05          # s: a divergence before it names what starts inside the soil as the likely cause
 SLEEP_AFTER = 0.05         # s a particle must stay quiet before it sleeps (soil.sleep)
 SLEEP_SPEED = 0.02         # x sqrt(g R): the quiet speed (what a settled bed counts as at rest)
 POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
@@ -1246,8 +1247,11 @@ class DemSoil:
                                   f"have a non-finite state (sim.soil_dt or the soil stiffness is unstable)")
         speed = math.sqrt(stat[dem.S_SPEED2])
         if speed > self.max_speed:
+            # a settled bed does not fly apart by itself in its first steps: something started inside it
+            start = ("; this early, a tool or a machine's link that starts inside the soil (or in another body) is "
+                     "the likely cause: check tools.*.start and the machines' poses") if self.time < START_TIME else ""
             raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: particle speed {speed:.3g} m/s above "
-                                  f"the limit {self.max_speed:g} m/s (soil.max_speed)")
+                                  f"the limit {self.max_speed:g} m/s (soil.max_speed){start}")
 
     # ------------------------------------------------------------------------------------------- outputs
     def _totals(self) -> np.ndarray:

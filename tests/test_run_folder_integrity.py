@@ -186,3 +186,13 @@ def test_a_run_driven_from_python_resumes_only_with_a_driver(tmp_path, capsys):
     result = ot.run_scene(load_scene(DIG, ["sim.duration=0.5", "output.plots=false"]), out_dir=out, quiet=True,
                           controller=steady, resume=True)
     assert result.status == "done"
+
+
+def test_a_tool_that_starts_inside_the_soil_is_named_as_the_likely_cause(tmp_path, capsys):
+    blade = str(ROOT / "scenes" / "blade_cut.yaml")
+    assert main(["run", blade, "--out", str(tmp_path / "run"), "--quiet", "--set", "soil.overrides.radius=0.04",
+                 "--set", "tools.0.start=[1.0,0,-0.2]", "--set", "tools.0.velocity=[0,0,0]",
+                 "--set", "sim.duration=0.2", "--set", "output.plots=false"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "soil.max_speed" in err[0] and "starts inside the soil" in err[0], err
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["status"] == "diverged"
