@@ -164,7 +164,7 @@ def _build_tools(scene) -> tuple[KinematicTool, ...]:
     return tuple(tools)
 
 
-def _build_motion(motion, key: str, machine, kinematics, initial_q) -> JointProfile | None:
+def _build_motion(motion, key: str, machine, kinematics, initial_q, name: str = "") -> JointProfile | None:
     if motion is None:
         return None
     joints = list(machine.actuated_joints)
@@ -178,7 +178,10 @@ def _build_motion(motion, key: str, machine, kinematics, initial_q) -> JointProf
             points.append((wp.t, dict(wp.q)))
         return joint_waypoints(points, {j: initial_q[j] for j in joints})
     if motion.type == "csv":
-        return read_joint_csv(Path(motion.file), joints, motion.time_offset)
+        try:
+            return read_joint_csv(Path(motion.file), joints, motion.time_offset, machine=name)
+        except UserError as exc:
+            raise UserError(f"{key}.file: {exc}") from None
     if motion.type == "bucket_tip_path":
         points = [(wp.t, np.asarray(wp.xyz, float), wp.bucket_angle) for wp in motion.waypoints]
         try:
@@ -240,7 +243,7 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
     return MachineModel(name=name, description=desc, kinematics=kin,
                         base_xyz=tuple(float(v) for v in cfg.base_pose.xyz), base_yaw=float(cfg.base_pose.yaw),
                         fixed_base=bool(cfg.fixed_base), initial_q=initial_q,
-                        motion=_build_motion(motion, motion_key, desc, kin, initial_q),
+                        motion=_build_motion(motion, motion_key, desc, kin, initial_q, name),
                         command_latency=float(cfg.command_latency if cfg.command_latency is not None
                                               else desc.command_latency))
 

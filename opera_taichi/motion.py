@@ -84,8 +84,9 @@ def joint_waypoints(waypoints: list[tuple[float, dict[str, float]]], initial_q: 
                         {j: np.asarray(v) for j, v in values.items()})
 
 
-def read_joint_csv(path: Path, joints: list[str], time_offset: float = 0.0) -> JointProfile:
-    """A recorded profile: column `t` (s) and per joint `<joint>` (rad) or `<joint>_deg` columns."""
+def read_joint_csv(path: Path, joints: list[str], time_offset: float = 0.0, machine: str = "") -> JointProfile:
+    """A recorded profile: column `t` (s) and per joint `<joint>` (rad) or `<joint>_deg` columns; in a log of several
+    machines (a run's joints.csv: `<machine>.<joint>`), the columns of `machine`."""
     from .scene import CsvProblem, read_motion_csv
 
     try:
@@ -94,10 +95,15 @@ def read_joint_csv(path: Path, joints: list[str], time_offset: float = 0.0) -> J
         raise UserError(f"{path}: {exc}") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read the motion CSV ({exc.strerror})") from None
+    mine = f"{machine}."
+    if machine and any(j.startswith(mine) for j in angles):
+        angles = {j[len(mine):]: v for j, v in angles.items() if j.startswith(mine)}
     for joint in angles:
         if joint not in joints:
+            other = f"; a log of machine {joint.split('.')[0]!r}, and this one is {machine!r}" \
+                if "." in joint and machine else ""
             raise UserError(f"{path}: column {joint!r} is not a joint of this machine "
-                            f"(joints: {', '.join(joints)})")
+                            f"(joints: {', '.join(joints)}){other}")
     if not angles:
         raise UserError(f"{path}: no joint columns (expected some of {', '.join(joints)})")
     t = np.asarray(times, float) + time_offset

@@ -64,3 +64,18 @@ def test_bad_csv_is_one_clear_line(tmp_path, text, words):
     with pytest.raises(UserError) as err:
         read_joint_csv(path, JOINTS)
     assert words in str(err.value) and "\n" not in str(err.value) and str(path) in str(err.value)
+
+
+def test_a_log_of_several_machines_replays_each_machines_own_columns(tmp_path):
+    """A run's joints.csv with two machines (`<machine>.<joint>.q` ...): each machine takes its own columns."""
+    path = tmp_path / "joints.csv"
+    head = ["t"] + [f"{m}.{j}.{k}" for m in ("east", "west") for j in JOINTS for k in ("q", "qd", "q_cmd")]
+    rows = [[t] + [(0.1 if m == "east" else -0.1) * (i + 1) * t for m in ("east", "west") for i, _ in
+                   enumerate(JOINTS) for _ in range(3)] for t in (0.0, 1.0)]
+    path.write_text(",".join(head) + "\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
+    east = read_joint_csv(path, JOINTS, machine="east")
+    west = read_joint_csv(path, JOINTS, machine="west")
+    assert set(east.joints) == set(JOINTS)
+    assert east.targets(1.0)[JOINTS[0]] == pytest.approx(0.1) and west.targets(1.0)[JOINTS[0]] == pytest.approx(-0.1)
+    with pytest.raises(UserError, match="a log of machine 'east', and this one is 'zx120'"):
+        read_joint_csv(path, JOINTS, machine="zx120")
