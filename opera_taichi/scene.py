@@ -1120,11 +1120,14 @@ def _default_as_data(annotation, key: str):
 
 
 # ----------------------------------------------------------------------------- public API
-def load_scene(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Scene:
-    """Reads a scene YAML safely, applies `--set key.path=value` overrides, validates, resolves paths.
+def load_scene(path: str | Path, overrides: list[str] | tuple[str, ...] | dict = ()) -> Scene:
+    """Reads a scene YAML safely, applies `--set key.path=value` overrides (or a mapping {key.path: value}, as
+    Simulation.from_scene takes), validates, resolves paths.
 
     Every problem a user can cause raises errors.UserError with one line naming the file and the key.
     """
+    if isinstance(overrides, dict):  # JSON is YAML: the values keep their types
+        overrides = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
     label = str(path)
     path = Path(path)
     text = _read_scene_text(path, label)

@@ -89,9 +89,7 @@ class Simulation:
         from .scene import load_scene
 
         if not hasattr(scene, "sim"):
-            sets = [f"{k}={json.dumps(v)}" for k, v in overrides.items()] if isinstance(overrides, dict) \
-                else list(overrides or [])
-            scene = load_scene(scene, sets)
+            scene = load_scene(scene, overrides or ())
         elif overrides:
             raise ValueError("overrides go with a scene file path; a loaded Scene already has its values")
         sim = cls(build_model(scene), arch=arch or scene.sim.arch, quiet=quiet, spin_wait=scene.sim.spin_wait)

@@ -232,3 +232,10 @@ def test_a_joint_without_an_initial_angle_starts_at_zero_or_its_nearest_limit(tm
     bad = load_scene(_write(tmp_path, "machine: {urdf: zx120, initial_joints: {arm_joint: 0.0}}\n", "bad.yaml"))
     with pytest.raises(UserError, match=r"^machine.initial_joints.arm_joint: 0.0000 rad is outside the joint's limits"):
         build_model(bad)
+
+
+def test_overrides_as_a_mapping_or_as_set_strings_load_the_same_scene(tmp_path, robot):
+    path = _write(tmp_path, f"machine: {{urdf: {robot.name}}}\n")
+    as_dict = load_scene(path, {"sim.duration": 3, "machine.base_pose.xyz": [1, 2, 0], "motion": None})
+    as_sets = load_scene(path, ["sim.duration=3", "machine.base_pose.xyz=[1, 2, 0]", "motion=null"])
+    assert scene_to_dict(as_dict) == scene_to_dict(as_sets) and as_dict.sim.duration == 3.0
