@@ -351,7 +351,6 @@ class DemSoil:
         m = soil.params
         r_max = m.radius * (1.0 + m.polydispersity)
         lo, hi = np.asarray(soil.domain_min, float), np.asarray(soil.domain_max, float)
-        _check_beds(list(soil.beds), lo, hi, r_max)  # (overlaps, counts: what building the soil would refuse)
         for i, (b_min, b_max) in enumerate(soil.beds):
             side = float(np.min(np.asarray(b_max) - np.asarray(b_min)))
             if side < 4.0 * r_max:
@@ -359,6 +358,7 @@ class DemSoil:
                 raise UserError(f"soil.overrides.radius: {m.radius:g} m grains do not fit soil.bed.{i} (its "
                                 f"smallest side, {side:g} m, must hold two grains of up to {r_max:g} m radius); the "
                                 f"largest radius that fits is {math.floor(largest * 1e4) / 1e4:g} m")
+        _check_beds(list(soil.beds), lo, hi, r_max)  # (overlaps, counts: what building the soil would refuse)
         cell = 2.0 * r_max + m.cohesion_range + SKIN_FRACTION * m.radius
         cells = float(np.max((hi - lo) / cell))
         if cells > dem.CELL_LIMIT:
@@ -1249,7 +1249,8 @@ class DemSoil:
         if speed > self.max_speed:
             # a settled bed does not fly apart by itself in its first steps: something started inside it
             start = ("; this early, a tool or a machine's link that starts inside the soil (or in another body) is "
-                     "the likely cause: check tools.*.start and the machines' poses") if self.time < START_TIME else ""
+                     "the likely cause: check tools.*.start and the machines' poses") \
+                if self.time < START_TIME and self._tool_names else ""
             raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: particle speed {speed:.3g} m/s above "
                                   f"the limit {self.max_speed:g} m/s (soil.max_speed){start}")
 
