@@ -256,11 +256,22 @@ def soil_parameters(soil):
     return solver_class(soil.model).map_parameters(soil)
 
 
+MAX_HEIGHTMAP_CELLS = 4_000_000   # a terrain file of 32 MB a heightmap (z and z_all), written twice a run
+
+
 def terrain_grid(soil) -> Grid2D:
     cell = float(soil.heightmap_cell)
     lo, hi = np.asarray(soil.domain.min, float), np.asarray(soil.domain.max, float)
+    extent = hi[:2] - lo[:2]
+    if cell > float(np.min(extent)) / 2:
+        raise UserError(f"soil.heightmap_cell: {cell:g} m leaves the domain ({extent[0]:g} x {extent[1]:g} m) fewer "
+                        f"than 2 cells across; at most {float(np.min(extent)) / 2:g} m")
     nx = max(1, int(round((hi[0] - lo[0]) / cell)))
     ny = max(1, int(round((hi[1] - lo[1]) / cell)))
+    if nx * ny > MAX_HEIGHTMAP_CELLS:
+        finest = math.sqrt(float(np.prod(extent)) / MAX_HEIGHTMAP_CELLS)
+        raise UserError(f"soil.heightmap_cell: {cell:g} m makes {nx * ny:,} cells over the domain, at most "
+                        f"{MAX_HEIGHTMAP_CELLS:,}; the finest cell is about {math.ceil(finest * 1e4) / 1e4:g} m")
     x = lo[0] + (np.arange(nx) + 0.5) * (hi[0] - lo[0]) / nx
     y = lo[1] + (np.arange(ny) + 0.5) * (hi[1] - lo[1]) / ny
     return Grid2D(x, y)
@@ -292,6 +303,10 @@ def _build_soil(scene) -> SoilModel:
         bmin, bmax = np.asarray(bed.min, float), np.asarray(bed.max, float)
         if np.any(bmin < lo - 1e-9) or np.any(bmax > hi + 1e-9):
             raise UserError(f"soil.bed.{i}: box {bmin.tolist()}..{bmax.tolist()} is not inside soil.domain "
+                            f"{lo.tolist()}..{hi.tolist()}")
+        shift = np.asarray(soil.bed_shift, float)
+        if np.any(bmin + shift >= hi) or np.any(bmax + shift <= lo):  # every grain would leave at once
+            raise UserError(f"soil.bed_shift: {shift.tolist()} moves soil.bed.{i} wholly out of soil.domain "
                             f"{lo.tolist()}..{hi.tolist()}")
     model = SoilModel(solver=soil.model, bulk=bulk, params=micro, dt=dt, domain_min=tuple(map(float, lo)),
                      domain_max=tuple(map(float, hi)),
