@@ -112,9 +112,10 @@ P_ADH_F = 28      # soil-tool adhesion: attraction at contact and added tangenti
 P_ADH_D = 29      # adhesion range beyond contact, m
 # Sleeping: a particle quiet (speed and r x spin below sqrt(P_SLEEP_V2), no tool contact, and not in the bounding
 # sphere of a tool moving slower than the wake speed: a load a tool creeps with would press into sleepers that never
-# wake) for P_SLEEP_STEPS substeps in a row sleeps: it is neither integrated nor are its pairs with other sleepers evaluated (their springs keep
-# their values: neither side moves). It wakes when a tool comes within r + skin of it, or when a touching neighbour
-# moves faster than WAKE_FACTOR x the quiet speed. P_SLEEP_STEPS 0: nothing sleeps (the default).
+# wake) for P_SLEEP_STEPS substeps in a row sleeps: it is neither integrated nor are its pairs with other sleepers
+# evaluated (their springs keep their values: neither side moves). It wakes when a tool comes within r + skin of it,
+# or when a touching neighbour moves faster than WAKE_FACTOR x the quiet speed. P_SLEEP_STEPS 0: nothing sleeps (the
+# default).
 P_SLEEP_STEPS = 30
 P_SLEEP_V2 = 31
 WAKE_FACTOR2 = 4.0

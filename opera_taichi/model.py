@@ -293,6 +293,9 @@ def _build_soil(scene) -> SoilModel:
         dt = float(scene.sim.soil_dt)
     else:
         dt = float(micro.dt_limit)
+    if dt < MIN_SOIL_DT and scene.sim.soil_dt is not None:
+        raise UserError(f"sim.soil_dt: {dt:g} s means {1.0 / dt:.3g} substeps per simulated second, at most "
+                        f"{1.0 / MIN_SOIL_DT:.0e} (hours of wall time per second); null takes the soil's own limit")
     if dt < MIN_SOIL_DT:
         raise UserError(f"soil.overrides: these grains need a soil substep of {dt:.3g} s, {1.0 / dt:.3g} substeps per "
                         f"simulated second (at most {1.0 / MIN_SOIL_DT:.0e}): lower youngs_modulus "

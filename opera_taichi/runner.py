@@ -271,6 +271,7 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
             raise UserError(f"--resume: {out} was driven by {driven}, not its scene's motion script; resume it with "
                             f"that driver (a ROS bridge: --ros1 or --ros-tcp; the sliders: --view; Python: "
                             f"run_scene(..., controller=..., resume=True))")
+        data["driver"] = driver_of(controller)  # what drives it from here (a later resume checks against it)
         manifest = Manifest(out / "manifest.json", data)
         manifest.data.update(status="running", pid=os.getpid(), host=socket.gethostname(), heartbeat=now_iso(),
                              status_before_resume=previous)

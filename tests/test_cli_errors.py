@@ -63,6 +63,7 @@ CASES = [
     ("heightmap_cell_tiny", "soil: {heightmap_cell: 0.0001}\n", [], ["soil.heightmap_cell", "the finest cell is"]),
     ("heightmap_cell_huge", "soil: {heightmap_cell: 50}\n", [], ["soil.heightmap_cell", "fewer than 2 cells"]),
     ("bed_shift_out", "soil: {bed_shift: [0, 0, 9]}\n", [], ["soil.bed_shift", "wholly out of soil.domain"]),
+    ("soil_dt_tiny", "sim: {soil_dt: 1.0e-9}\nsoil: {}\n", [], ["sim.soil_dt", "substeps per simulated second"]),
     ("stiffness_typo", "soil: {overrides: {youngs_modulus: 1e20}}\n", [],
      ["soil.overrides", "substeps per simulated second", "youngs_modulus"]),
     ("overrides_typo", "soil: {overrides: {radus: 0.05}}\n", [], ["soil.overrides.radus", "did you mean 'radius'"]),

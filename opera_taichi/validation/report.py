@@ -297,7 +297,8 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
    `opera-taichi validate-physics repose --param preset=NAME`, with `--param rolling_resistance=VALUE` (both cases,
    and the blade and the wall, take it instead of the mapping's), until the run-out sits in the Lube/Lajeunesse band
-   and the heap matches the measured repose angle; a scene takes the value as `soil.overrides.rolling_resistance`. The heap is poured through a hopper whose outlet rides on its apex (a lifted column collapses and
+   and the heap matches the measured repose angle; a scene takes the value as `soil.overrides.rolling_resistance`.
+   The heap is poured through a hopper whose outlet rides on its apex (a lifted column collapses and
    leaves a rounded top 4-6 deg flatter than its flanks). Above ~0.35 poured beds become very loose (solid
    fraction below 0.4) and weak; below ~0.12 heaps stay near 20 deg. The default's exponent comes from two
    heaps at the default resolution: sand (33 deg) stands at 32.7 deg with 0.3; glass beads (22 deg) at 24.2 deg
