@@ -35,7 +35,7 @@ from .tool_sdf import tool_sdf
 
 MORTON_TABLE_PER_PARTICLE = 16
 MORTON_TABLE_MAX = 1 << 21
-SOLVER_VERSION = 16  # 16: a larger cell hash table (other particle order, other round-off); sleeping blocks skipped
+SOLVER_VERSION = 17  # 17: a shifted bed keeps its masses and contacts (16: a larger cell hash table; sleeping blocks skipped)
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 # Frozen soil (soil.sleep): a full rebuild moves the particles that are asleep, farther than FREEZE_MARGIN beyond
@@ -333,8 +333,7 @@ class DemSoil:
             self._set_prm(self._parameters())
         shift = np.asarray(soil.bed_shift, float)
         if build_beds and np.any(shift != 0.0):  # a settled block released above the ground (the pits stay, empty)
-            parts = self.particles()
-            self.set_particles(parts["positions"] + shift, radii=parts["radii"])
+            self._shift_particles(shift)
         if soil.clear_above is not None:
             self.clear_above(float(soil.clear_above))
         return self
@@ -1040,6 +1039,15 @@ class DemSoil:
         self._rebuild()
 
     _STATE = ("kin", "prop", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h")
+
+    def _shift_particles(self, shift) -> None:
+        """Move every particle by shift, keeping its mass (matched to the bulk density) and its contacts with other
+        grains; the calm counters restart so that a moved block starts awake. Springs with faces it leaves are freed
+        on its first step."""
+        state = self._state_arrays()
+        state["kin"][:, 0] += np.asarray(shift, float)
+        state["surf_id"][:, dem.TOOL_BITS] = 0
+        self._set_state(state)
 
     def _state_arrays(self) -> dict[str, np.ndarray]:
         """Active particles with their contact history (after a rebuild they are the first n_act)."""

@@ -158,3 +158,30 @@ def test_a_bed_that_did_not_come_to_rest_says_so(tmp_path, monkeypatch):
     assert make_bed(settle_time=0.2).warnings == short.warnings
     rested = make_bed(settle_time=2.0)
     assert rested.settle_speed == 0.0 and rested.warnings == []
+
+
+def test_a_shifted_bed_is_the_settled_bed_moved():
+    # soil.bed_shift releases a settled block (vertical cut, column, heap): every grain keeps its mass, matched to the
+    # bulk density, and its springs with the grains it touches; only the positions move
+    from opera_taichi.dem_soil import DemSoil
+    from opera_taichi.model import build_model
+    from opera_taichi.scene import load_scene
+    from opera_taichi.validation import cases
+
+    sets, _ = cases.build_overrides("vertical_cut", cases.parse_params("vertical_cut", ["preset=dirt", "height=0.5"]),
+                                    "coarse")
+    built = {}
+    for name, extra in (("shifted", []), ("in place", ["soil.bed_shift=[0, 0, 0]"])):
+        model = build_model(load_scene(cases.scene_file("vertical_cut"), sets + extra))
+        soil = DemSoil.from_model(model.soil)
+        built[name] = soil, soil.particles(), soil._state_arrays()["nbr_h"], np.asarray(model.soil.bed_shift)
+    (moved, a, springs_a, shift), (settled, b, springs_b, _) = built["shifted"], built["in place"]
+    assert np.any(shift != 0)
+    gap = np.linalg.norm(a["positions"][:, None] - (b["positions"][None] + shift), axis=2)
+    same = gap.argmin(axis=1)
+    assert sorted(same) == list(range(settled.n_particles))  # one-to-one
+    assert gap.min(axis=1).max() < 1e-9
+    assert np.array_equal(a["masses"], b["masses"][same])
+    assert moved.mass_budget()["particles"] == pytest.approx(settled.micro.bulk_density * np.prod(
+        np.subtract(*reversed(settled.beds[0]))), rel=0.1)
+    assert np.abs(springs_a).sum() > 0 and np.abs(springs_a).sum() == pytest.approx(np.abs(springs_b).sum(), rel=1e-6)
