@@ -16,15 +16,14 @@ COORDINATION = 6.0        # mean contacts per particle in Rumpf's strength formu
 STIFFNESS_SCALE = 1.0     # k_n = STIFFNESS_SCALE * E * 2R (a regular packing's modulus is ~ k_n / 2R)
 OVERLAP_RULE = 100.0      # k_n >= 100 rho g H d keeps the mean overlap under the bed's weight below ~1% of R
 COHESION_RANGE = 0.1      # cohesive band D = 0.1 R beyond contact (also the soil-tool adhesion band)
-# The bond force from Rumpf's formula with c = sigma_t tan(phi), times COHESION_SCALE tan(phi)^COHESION_EXPONENT:
-# with Rumpf's alone the critical height of a vertical cut (`validate-physics critical_height`, bisected between a
-# face that stands 5 s and one that falls) read 0.72 / 0.59 x Culmann's for dirt (phi 40 deg, c 2.1 kPa) at the
-# coarse / default resolution and 1.16 / 1.09 x for kanto_loam (phi 20 deg, c 10 kPa): the bonds' strength follows
-# 1 / tan(phi) more weakly than Rumpf's. The factor that puts both soils at Culmann's on the mean of the two
-# resolutions (assuming the height goes as the bond force) is 1.716 tan(phi)^0.65; with it dirt read 1.09 / 0.97 x,
-# kanto_loam 1.16 / 0.97 x (docs/resolution.md).
-COHESION_SCALE = 1.716
-COHESION_EXPONENT = 0.65
+# The bond force from Rumpf's formula with c = sigma_t tan(phi), times COHESION_SCALE tan(phi)^COHESION_EXPONENT,
+# fitted on the critical height of a vertical cut (`validate-physics critical_height`, bisected between a face that
+# stands 5 s and one that falls) at the coarse and default resolutions: with 1.716 tan(phi)^0.65 it read 0.72 / 0.78 x
+# Culmann's for dirt (phi 40 deg, c 2.1 kPa) and 0.91 / 0.97 x for kanto_loam (phi 20 deg, c 10 kPa). The factor that
+# puts both soils at Culmann's on the geometric mean of the two resolutions (assuming the height goes as the bond
+# force) is 2.40 tan(phi)^0.92; with it dirt read 1.09 / 0.97 x, kanto_loam 0.91 / 0.97 x (docs/resolution.md).
+COHESION_SCALE = 2.40
+COHESION_EXPONENT = 0.92
 # Tool area per soil-tool contact, in R^2: the grains touching a flat face cover about 55% of it in projection (a
 # random monolayer), one contact per pi R^2 / 0.55. Converts the adhesion c_a (Pa) to a force per contact.
 TOOL_CONTACT_AREA = math.pi / 0.55

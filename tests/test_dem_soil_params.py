@@ -73,7 +73,7 @@ def test_micro_mapping_follows_the_documented_rules():
     assert micro.mu == pytest.approx(math.tan(bulk.friction_angle))
     assert micro.mu_tool == pytest.approx(math.tan(2.0 / 3.0 * bulk.friction_angle))
     # Rumpf + Mohr-Coulomb inverted: c = sigma_t tan(phi), sigma_t = phi_s Z F / (pi d^2), with the calibration
-    # 1.716 tan(phi)^0.65 from the vertical cut's critical height
+    # COHESION_SCALE tan(phi)^COHESION_EXPONENT from the vertical cut's critical height
     from opera_taichi.soil import COHESION_EXPONENT, COHESION_SCALE
 
     sigma_t = SOLID_FRACTION * 6.0 * micro.cohesion_force / (math.pi * d ** 2)

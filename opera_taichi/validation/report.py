@@ -312,12 +312,13 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    Culmann height, `validate-physics vertical_cut --param preset=NAME --param height=H`, and with its critical
    height, bisected between a face that stands 5 s and one that falls, `validate-physics critical_height --param
    preset=NAME` (gate: within 25% of Culmann's; `validate-physics resolution` runs it for dirt and kanto_loam at
-   the coarse and default resolutions, docs/resolution.md). With Rumpf's bond force alone the critical height read
-   0.72 / 0.59 x Culmann's for dirt (phi 40 deg) at coarse / default and 1.16 / 1.09 x for kanto_loam (phi 20 deg):
-   the bonds' strength follows 1 / tan(phi) more weakly than Rumpf's c = sigma_t tan(phi) says, so the mapping
-   multiplies the bond force by 1.716 tan(phi)^0.65 (soil.COHESION_SCALE, COHESION_EXPONENT). With it: dirt 1.09 /
-   0.97 x, kanto_loam 1.16 / 0.97 x (kanto_loam's did not follow its 11% weaker bonds at coarse: its face fails
-   by friction more than by tension). Raise or lower `cohesion` for a soil whose cut is known.
+   the coarse and default resolutions, docs/resolution.md). The bonds' strength follows 1 / tan(phi) more weakly
+   than Rumpf's c = sigma_t tan(phi) says, so the mapping multiplies the bond force by 2.40 tan(phi)^0.92
+   (soil.COHESION_SCALE, COHESION_EXPONENT), the factor that puts dirt (phi 40 deg) and kanto_loam (phi 20 deg) at
+   Culmann's on the geometric mean of the two resolutions. With the earlier 1.716 tan(phi)^0.65 (fitted while
+   `soil.bed_shift` rebuilt the cut's grains 25-40% light) they read 0.72 / 0.78 x and 0.91 / 0.97 x at coarse /
+   default; with 2.40 tan(phi)^0.92, dirt 1.09 / 0.97 x and kanto_loam 0.91 / 0.97 x (kanto_loam's bonds changed by
+   7%, less than one bisection step). Raise or lower `cohesion` for a soil whose cut is known.
 5. **Adhesion** `adhesion` (soil-tool c_a, Pa; an attraction and as much tangential grip per tool contact, see
    soil.py): check with the blade, `validate-physics blade_cut --param adhesion=CA` against the same cut without
    it; the increments of draft and vertical force compare with the earthmoving equation's c_a terms. Sand, d 0.15 m,
