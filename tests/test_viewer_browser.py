@@ -155,10 +155,11 @@ def test_live_view_shows_the_machine_digging(browser, shots, tmp_path):
     port = free_port()
     out, log = tmp_path / "live", tmp_path / "live.log"
     with open(log, "wb") as fh:   # a file, not a pipe: nobody has to drain it
-        # paced to the wall clock: the run lasts 25 s whatever the host's speed, so the shots fall inside it
+        # paced to the wall clock, so the arm moves for the motion's 25 s whatever the host's speed; the run lasts
+        # longer than any wait below (it is stopped once the shots are taken), so a slow browser cannot outlive it
         proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "run", str(SCENE), "--view", "--view-port",
                                  str(port), "--out", str(out), "--quiet", "--pace", "realtime", *COARSE,
-                                 "--set", "sim.duration=25"],
+                                 "--set", "sim.duration=600"],
                                 stdout=subprocess.DEVNULL, stderr=fh)
     try:
         wait_for_http(f"http://127.0.0.1:{port}", proc, log)
