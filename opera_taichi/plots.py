@@ -136,8 +136,9 @@ def plot_tool_wrench(csv_path: Path, png_path: Path) -> None:
             ax.plot(t, v, color=colour, lw=1.0, alpha=0.85, label=c)
         i = int(np.argmax(mag))
         ax.plot(t[i], mag[i], "o", color="black", ms=6)
-        ax.annotate(f"peak |F| {mag[i]:.1f} kN at {t[i]:.2f} s", (t[i], mag[i]), xytext=(10, -2),
-                    textcoords="offset points", fontsize=8, va="top",
+        late = t[i] > 0.5 * (t[0] + t[-1])  # the label reads away from the panel's right edge and the legend there
+        ax.annotate(f"peak |F| {mag[i]:.1f} kN at {t[i]:.2f} s", (t[i], mag[i]), xytext=(-10 if late else 10, -2),
+                    textcoords="offset points", fontsize=8, va="top", ha="right" if late else "left",
                     bbox=dict(facecolor="white", alpha=0.85, lw=0))
         ax.axhline(0.0, color="gray", lw=0.8)
         ax.set_ylabel(f"{tool}\nforce (kN)")

@@ -298,3 +298,22 @@ def test_plots_of_files_with_no_rows_are_left_out_quietly(tmp_path, capsys):
     write_plots(tmp_path, ["boom_joint"])
     assert capsys.readouterr().err == ""
     assert not list(tmp_path.glob("*.png"))
+
+
+@pytest.mark.parametrize("peak_at", [0.1, 0.99])
+def test_the_wrench_peak_label_stays_inside_its_panel(tmp_path, monkeypatch, peak_at):
+    """The peak's label reads into the panel wherever the peak is, so it never runs into the legend at its right."""
+    t = np.linspace(0.0, 10.0, 501)
+    fx = 1e3 + 4e4 * np.exp(-((t - peak_at * 10.0) / 0.3) ** 2)
+    rows = "".join(f"{a:.3f},bucket,{b:.1f},0,0,0,0,0\n" for a, b in zip(t, fx))
+    (tmp_path / "tool_wrench.csv").write_text("t,tool,fx,fy,fz,tx,ty,tz\n" + rows)
+    saved = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: saved.append(fig))
+    plots.plot_tool_wrench(tmp_path / "tool_wrench.csv", tmp_path / "tool_wrench.png")
+    fig = saved[0]
+    renderer = fig.canvas.get_renderer()
+    ax = fig.axes[0]
+    label = next(a for a in ax.texts if a.get_text().startswith("peak |F|"))
+    box, panel = label.get_window_extent(renderer), ax.get_window_extent(renderer)
+    assert panel.x0 <= box.x0 and box.x1 <= panel.x1, (box, panel)
+    plots.plt.close(fig)
