@@ -199,7 +199,9 @@ def test_report_from_metrics(tmp_path):
                  **blade),
                m("blade_cut", "blade_3d_a90_d0.2_w1.0", 1250.0, 1230.8, None, depth=0.2, width=1.0, plane_strain=0.0,
                  **blade),
-               m("column_collapse", "column_a0.5", 0.7, 0.75, True, aspect_ratio=0.5),
+               # two packings at a = 0.5: the slope gate takes their mean, 0.7
+               m("column_collapse", "column_a0.5_seed0", 0.6, 0.75, True, aspect_ratio=0.5, seed=0),
+               m("column_collapse", "column_a0.5_seed1", 0.8, 0.75, True, aspect_ratio=0.5, seed=1),
                m("column_collapse", "column_a1", 1.4, 1.5, True, aspect_ratio=1.0)]
     path = report.write_report(results, tmp_path / "validation.md", "opera-taichi validate-physics all")
     text = path.read_text()
@@ -481,3 +483,10 @@ def test_critical_height_from_the_command_line_says_its_result_and_where(tmp_pat
     out = capsys.readouterr().out.strip().splitlines()
     assert out[-1].startswith("critical_height: critical_height = ") and "PASS" in out[-1]
     assert out[-1].endswith(str(tmp_path / "metrics.json"))
+
+
+def test_a_column_seed_is_its_runs_packing_seed():
+    sets, _ = cases.build_overrides("column_collapse", cases.parse_params("column_collapse", ["seed=3"]), "coarse")
+    assert load_scene(cases.scene_file("column_collapse"), sets).sim.seed == 3
+    with pytest.raises(UserError, match="seed"):
+        cases.parse_params("column_collapse", ["seed=1.5"])

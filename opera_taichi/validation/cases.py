@@ -89,7 +89,9 @@ PARAMS: dict[str, dict[str, Param]] = {
     "passive_wall": {"height": Param(0.3, "m"), "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)),
                      "density": Param(1700.0, "kg/m3"), "preset": PRESET, "rolling_resistance": ROLLING},
     "column_collapse": {"aspect_ratio": Param(1.0, "", lambda v: 0.1 <= v <= 8, "between 0.1 and 8"),
-                        "length": Param(0.4, "m"), "preset": PRESET, "rolling_resistance": ROLLING},
+                        "length": Param(0.4, "m"), "preset": PRESET, "rolling_resistance": ROLLING,
+                        "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, "a whole number >= 0 "
+                                      "(sim.seed: the column's packing)")},
     "repose": {"preset": PRESET, "rolling_resistance": ROLLING},
     "vertical_cut": {"height": Param(None, "m (default: 0.6 x the Culmann height of the preset)"),
                      "preset": Param("dirt", "", None, "a soil preset")},
@@ -351,7 +353,7 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
                 "soil.bed": [_box((xp, 0, -H0), (xp + L0, W, 0))],
                 "soil.domain": _box((0, 0, -H0 - 0.05), (xp + L0 + 0.05, W, H0 + 1.0)),
                 "soil.settle_time": _settle_time(H0), "soil.bed_shift": [-xp, 0.0, H0],
-                "sim.duration": 0.5 + 6.0 * math.sqrt(H0 / 9.81)}
+                "sim.duration": 0.5 + 6.0 * math.sqrt(H0 / 9.81), "sim.seed": int(p["seed"])}
         geo = dict(radius=R, L0=L0, H0=H0, reach=reach)
     elif case == "repose":
         D = REPOSE_COLUMN

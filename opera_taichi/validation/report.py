@@ -28,7 +28,11 @@ def gate_set() -> list[tuple[str, str, dict]]:
         *[(f"blade_3d_a90_d0.2_w{w:.1f}", "blade_cut", {**SAND, "depth": 0.2, "plane_strain": 0, "width": w,
                                                          "rake_deg": 90.0, "delta_deg": 0.0}) for w in (1.5, 1.0)],
         ("passive_wall_H0.3", "passive_wall", {**SAND, "height": 0.3}),
-        *[(f"column_a{a:g}", "column_collapse", {"aspect_ratio": a, "preset": "sand"}) for a in (0.5, 1.0, 2.0)],
+        # the run-out's front is a few grains: at 16 across L0 it spreads 0.56-0.69 at a = 0.5 and 1.18-1.40 at a = 1
+        # over seeds, so the slope gate takes the mean of three packings at each a
+        *[(f"column_a{a:g}_seed{seed}", "column_collapse", {"aspect_ratio": a, "preset": "sand", "seed": seed})
+          for a in (0.5, 1.0) for seed in (0, 1, 2)],
+        ("column_a2", "column_collapse", {"aspect_ratio": 2.0, "preset": "sand"}),
         ("repose_sand", "repose", {"preset": "sand"}),
         ("repose_glass_beads", "repose", {"preset": "glass_beads"}),
         ("vertical_cut_0.6Hc", "vertical_cut", {"preset": "dirt", "height": 0.6 * hc}),
@@ -90,12 +94,15 @@ def derived_gates(results: list[dict]) -> list[dict]:
         ratio = total("blade_3d_a90_d0.2_w1.5") / total("blade_3d_a90_d0.2_w1.0")
         rows.append(dict(label="blade draft ~ w (w 1.5 vs 1.0)", measured=ratio, reference=1.5,
                          relative_error=ratio / 1.5 - 1, passed=abs(ratio / 1.5 - 1) <= 0.10, gate="within 10%"))
-    small = [r for r in results if r["case"] == "column_collapse" and r["parameters"]["aspect_ratio"] <= 1.0
-             and r["measured"] > 0]
-    if len(small) >= 2:
-        slope = ref.loglog_slope([r["parameters"]["aspect_ratio"] for r in small], [r["measured"] for r in small])
+    runouts: dict[float, list[float]] = {}  # the mean over the packings (seeds) run at each aspect ratio
+    for r in results:
+        if r["case"] == "column_collapse" and r["parameters"]["aspect_ratio"] <= 1.0 and r["measured"] > 0:
+            runouts.setdefault(r["parameters"]["aspect_ratio"], []).append(r["measured"])
+    if len(runouts) >= 2:
+        slope = ref.loglog_slope(list(runouts), [float(np.mean(v)) for v in runouts.values()])
         rows.append(dict(label="run-out log-log slope, a <= 1", measured=slope, reference=1.0,
-                         relative_error=slope - 1.0, passed=abs(slope - 1.0) <= 0.15, gate="1.0 +- 0.15"))
+                         relative_error=slope - 1.0, passed=abs(slope - 1.0) <= 0.15,
+                         gate="1.0 +- 0.15, on the mean run-out of the runs at each a"))
     return rows
 
 
