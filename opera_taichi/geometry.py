@@ -21,3 +21,11 @@ def quat_to_matrix(q) -> np.ndarray:
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def quat_to_rpy(q) -> np.ndarray:
+    """Fixed-axis roll, pitch, yaw (rad) of a quaternion (x, y, z, w): the inverse of rpy_to_quat, pitch in
+    [-pi/2, pi/2]."""
+    m = quat_to_matrix(np.asarray(q, float) / np.linalg.norm(q))
+    return np.array([math.atan2(m[2, 1], m[2, 2]), math.asin(float(np.clip(-m[2, 0], -1.0, 1.0))),
+                     math.atan2(m[1, 0], m[0, 0])])

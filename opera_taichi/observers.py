@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import quat_to_matrix
+from .geometry import quat_to_matrix, quat_to_rpy
 from .recorders import write_terrain
 
 
@@ -236,7 +236,8 @@ def _fmt(v) -> str:
 
 class JointsCsv(CsvObserver):
     """joints.csv: per joint q, qd, q_cmd (the applied position target; NaN in velocity mode), qd_cmd (the motor's
-    speed command) and effort. Columns are `<joint>.q` for one machine, `<machine>.<joint>.q` for several."""
+    speed command) and effort; then, for a machine on tracks (fixed_base false), its base_link pose. Columns are
+    `<joint>.q` and `base.x` for one machine, `<machine>.<joint>.q` and `<machine>.base.x` for several."""
 
     filename = "joints.csv"
 
@@ -252,7 +253,14 @@ class JointsCsv(CsvObserver):
             q, qd, effort, cmd, speed = m._q, m._qd, m._effort, m.applied_targets, m._speed_cmd
             for k in range(len(q)):
                 row += [q[k], qd[k], cmd[k], speed[k], effort[k]]
+        for m in sim.model.machines:
+            if not m.fixed_base:
+                xyz, quat = sim.machines[m.name].base_pose()
+                row += [*xyz, *quat_to_rpy(quat)]
         return [row]
+
+
+BASE_POSE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")  # m and rad (fixed-axis), base_link in the world
 
 
 def joint_columns(model) -> list[str]:
@@ -265,8 +273,11 @@ def csv_columns(model) -> dict[str, list[str]]:
     """The header of each CSV file a run of this model writes (a study checks its metrics against them)."""
     out = {}
     if model.machines:
+        several = len(model.machines) > 1
         out[JointsCsv.filename] = ["t"] + [f"{c}.{k}" for c in joint_columns(model)
-                                           for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")]
+                                           for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")] + \
+            [f"{m.name + '.' if several else ''}base.{k}" for m in model.machines if not m.fixed_base
+             for k in BASE_POSE_COLUMNS]
     if model.soil is not None:
         out[WrenchCsv.filename] = ["t", "tool", "fx", "fy", "fz", "tx", "ty", "tz"]
         out[SoilMassCsv.filename] = ["t", "mass_kg", "particles_kg", "out_of_domain_kg"] + \

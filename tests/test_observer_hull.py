@@ -27,3 +27,14 @@ def test_the_sphere_prefilter_keeps_every_grain_in_the_hull():
     brute = np.all(local @ planes[0][:, :3].T + planes[0][:, 3] <= 0.0, axis=1)
     assert 1000 < brute.sum() < 19000                   # both inside and outside grains
     assert np.array_equal(mask, brute)
+
+
+def test_roll_pitch_yaw_round_trip_through_the_quaternion():
+    from opera_taichi.geometry import quat_to_rpy, rpy_to_quat
+
+    rng = np.random.default_rng(3)
+    for rpy in np.column_stack([rng.uniform(-3.1, 3.1, 200), rng.uniform(-1.55, 1.55, 200),
+                                rng.uniform(-3.1, 3.1, 200)]):
+        q = rpy_to_quat(rpy)
+        assert np.allclose(quat_to_rpy(q), rpy, atol=1e-9)
+        assert np.allclose(quat_to_rpy(-q), rpy, atol=1e-9)   # q and -q are one rotation

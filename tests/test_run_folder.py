@@ -97,3 +97,32 @@ def test_a_runs_own_joints_csv_replays_as_a_csv_motion(dig_run, tmp_path):
     assert np.array_equal(replay["t"], original["t"])
     for j in JOINTS:
         assert np.max(np.abs(replay[f"{j}.q_cmd"][1:] - original[f"{j}.q"][1:])) < 1e-3, j
+
+
+def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
+    """fixed_base false: joints.csv ends with the base_link pose, and the heading it records is the direction the
+    machine drives in. The log still replays as a csv motion (the base columns are not joints)."""
+    from opera_taichi.control import Control, MachineControl
+    from opera_taichi.motion import read_joint_csv
+    from opera_taichi.runner import run_scene
+    from opera_taichi.scene import load_scene
+
+    class DriveAhead:
+        def control(self, sim, t):
+            return Control({"zx120": MachineControl(track_speeds=(0.6, 0.6))}, t, "test")
+
+    scene = load_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml", ["machine.fixed_base=false", "sim.duration=3",
+                                                                  "machine.base_pose.yaw=0.5235987755982988", "output.plots=false"])
+    out = run_scene(scene, tmp_path / "run", quiet=True, controller=DriveAhead()).out_dir
+    with open(out / "joints.csv") as fh:
+        header = next(csv.reader(fh))
+    assert header[-6:] == [f"base.{k}" for k in ("x", "y", "z", "roll", "pitch", "yaw")]
+    cols = read_csv_columns(out / "joints.csv")
+    x, y, yaw = cols["base.x"], cols["base.y"], cols["base.yaw"]
+    assert yaw[0] == pytest.approx(math.radians(30), abs=1e-3)
+    travel = np.hypot(x[-1] - x[0], y[-1] - y[0])
+    assert travel > 0.5
+    heading = math.atan2(y[-1] - y[0], x[-1] - x[0])
+    assert abs(math.remainder(heading - yaw.mean(), 2 * math.pi)) < math.radians(3)
+    assert np.abs(cols["base.roll"]).max() < 0.05 and np.abs(cols["base.pitch"]).max() < 0.05   # flat ground
+    assert set(read_joint_csv(out / "joints.csv", JOINTS).joints) == set(JOINTS)
