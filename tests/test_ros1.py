@@ -214,3 +214,21 @@ def test_joint_cmd_md5_matches_genpys_class(ros):
     done = subprocess.run([SYSTEM_PYTHON, "-c", "from com3_msgs.msg import JointCmd; print(JointCmd._md5sum)"],
                           env=env, capture_output=True, text=True, timeout=60, check=True)
     assert done.stdout.strip() == msgdef(typestore(1), "com3_msgs/msg/JointCmd", 1)[1]
+
+
+def test_ros1_a_master_that_dies_is_said(ros, tmp_path):
+    """roscore ends under a running node: the run says so once (stderr and the manifest's run_warnings) and goes on."""
+    _, env0, tmp = ros
+    core = RosCore(tmp_path)
+    env = dict(env0, ROS_MASTER_URI=core.uri)
+    proc, out, err = start_run(MACHINE_ONLY + ["--ros1"], env, tmp_path, "ros1_master_dies")
+    try:
+        wait_for(lambda: "/zx120/joint_states" in core.publishers(), 90, "the run's joint_states registered")
+        core.close()
+        wait_for(lambda: "stopped answering" in err.read_text(), 30, "the run saying the master is gone")
+        assert proc.poll() is None
+    finally:
+        text = _close_run(proc, out, err)
+    assert sum("stopped answering" in line for line in text.splitlines()) == 1
+    warnings = json.loads((out / "manifest.json").read_text())["run_warnings"]
+    assert any(f"ROS master at {core.uri} stopped answering" in w for w in warnings)

@@ -121,7 +121,7 @@ def make_transport(config, log):
 
         if config.address:  # the scene names the master
             os.environ["ROS_MASTER_URI"] = config.address
-        return Ros1Transport(typestore(1))
+        return Ros1Transport(typestore(1), log=log)
     from .transport_tcp import RosTcpTransport
 
     return RosTcpTransport(config.address or DEFAULT_ENDPOINT, log)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 import xmlrpc.client
 
 from ..errors import UserError
@@ -39,6 +40,23 @@ def master_uri() -> str:
     return os.environ.get("ROS_MASTER_URI") or "http://localhost:11311"
 
 
+MASTER_CHECK_S = 2.0   # wall seconds between asking the master whether it is still there (on the bridge's thread)
+
+
+class _TimeoutTransport(xmlrpc.client.Transport):
+    """xmlrpc over HTTP with a socket timeout: a master host that stopped answering cannot hold the bridge's
+    thread for longer."""
+
+    def __init__(self, timeout: float):
+        super().__init__()
+        self._timeout = timeout
+
+    def make_connection(self, host):
+        conn = super().make_connection(host)
+        conn.timeout = self._timeout
+        return conn
+
+
 def check_master() -> None:
     """A one-line error now rather than a node that waits for a master forever."""
     uri = master_uri()
@@ -55,10 +73,14 @@ class Ros1Transport:
     protocol = "ROS1"
     ros_version = 1
 
-    def __init__(self, store, node_name: str = "opera_taichi"):
+    def __init__(self, store, node_name: str = "opera_taichi", log=None):
         check_master()
         self.rospy = rospy = import_rospy()
         self.store = store
+        self._log = log or (lambda key, text: None)
+        self._probe = xmlrpc.client.ServerProxy(master_uri(), transport=_TimeoutTransport(1.0))
+        self._master_up, self._master_changes = True, 0
+        self._next_check = time.monotonic() + MASTER_CHECK_S
         self._classes: dict[str, type] = {}
         self._pubs: dict[str, object] = {}
         self._subs: list = []
@@ -83,10 +105,34 @@ class Ros1Transport:
                                                 queue_size=10, tcp_nodelay=True))
 
     def publish(self, topic: str, data: bytes) -> None:
+        self._watch_master()
         pub = self._pubs[topic]
         msg = pub.data_class()
         msg._buff = data
         pub.publish(msg)
+
+    def _watch_master(self) -> None:
+        """Say when the master stops answering, and when it answers again: rospy carries on silently, and a node is
+        not registered again with a new master."""
+        now = time.monotonic()
+        if now < self._next_check:
+            return
+        self._next_check = now + MASTER_CHECK_S
+        try:
+            up = self._probe.getPid("/opera_taichi_probe")[0] == 1
+        except (OSError, xmlrpc.client.Error):
+            up = False
+        if up == self._master_up:
+            return
+        self._master_up = up
+        self._master_changes += 1
+        if up:
+            text = (f"the ROS master at {master_uri()} answers again, but this node is not registered with it: new "
+                    f"subscribers and publishers cannot find it until the run is restarted")
+        else:
+            text = (f"the ROS master at {master_uri()} stopped answering: topics already connected keep flowing, "
+                    f"but no new node can find this one (restart roscore, then the run)")
+        self._log(("master", self._master_changes), text)
 
     def close(self) -> None:
         for s in self._subs:
