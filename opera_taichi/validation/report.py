@@ -309,7 +309,9 @@ The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user cont
    leaves a rounded top 4-6 deg flatter than its flanks). Above ~0.35 poured beds become very loose (solid
    fraction below 0.4) and weak; below ~0.12 heaps stay near 20 deg. The default's exponent comes from two
    heaps at the default resolution: sand (33 deg) stands at 32.7 deg with 0.3; glass beads (22 deg) at 24.2 deg
-   with 0.147 (exponent 1.5), 21.5 with 0.130 and 22.6 with 0.131 (exponent 1.75, the default).
+   with 0.147 (exponent 1.5), 21.5 with 0.130 and 22.6 with 0.131 (exponent 1.75, the default). These heaps were
+   poured from columns that `soil.bed_shift` had rebuilt light and without contacts; with the column kept as
+   settled (2026-11-26) the same defaults stand at 32.4 and 21.2 deg.
 3. **Friction angle** `friction_angle_deg` (particle friction tan(phi)): check with the passive wall and the blade,
    `validate-physics passive_wall --param height=0.3` and `validate-physics blade_cut --param depth=0.3` (plane
    strain, 20 grains across d: about 25 min on 2 cores; `--resolution 12` takes about 6 min and reads about 1.2 x),
