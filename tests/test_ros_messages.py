@@ -375,3 +375,37 @@ def test_command_latency_comes_from_machine_yaml_or_the_scene(tmp_path):
     cfg.write_text(cfg.read_text().replace("command_latency: 0.15", "command_latency: -1"))
     with pytest.raises(UserError, match="command_latency must be a number of seconds >= 0, got -1"):
         build_model(load_scene(DIG_CYCLE, [f"machine.config={cfg}"]))
+
+
+def test_the_ros1_master_watch_says_a_gone_master_once_and_tells_a_new_one_from_the_same(monkeypatch):
+    """One slow probe is not a dead master; two misses in a row are, said once; the same master back (its pid) is
+    said as such, and a new master (another pid, which does not know this node) is said as a new one."""
+    import threading
+
+    from opera_taichi.ros import transport_ros1
+
+    monkeypatch.setattr(transport_ros1, "MASTER_CHECK_S", 0.001)
+    script = [42, None, 42, None, None, None, 42, None, None, 7, 7]   # pids; None: no answer
+    done = threading.Event()
+
+    class Probe:
+        def getPid(self, caller):
+            if not script:
+                done.set()
+                raise OSError("end of script")
+            pid = script.pop(0)
+            if pid is None:
+                raise TimeoutError("timed out")
+            return [1, "", pid]
+
+    said = []
+    watch = transport_ros1.MasterWatch("http://127.0.0.1:1", 42, lambda key, text: said.append((key, text)),
+                                       probe=Probe())
+    try:
+        assert done.wait(30)
+    finally:
+        watch.close()
+    texts = [t for _, t in said]
+    assert len({k for k, _ in said}) == len(said)        # each its own key: the bridge says each once
+    assert [("stopped" in t, "answers again" in t, "new ROS master" in t) for t in texts][:4] == [
+        (True, False, False), (False, True, False), (True, False, False), (False, False, True)]

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import sys
-import time
+import threading
 import xmlrpc.client
 
 from ..errors import UserError
@@ -40,12 +40,12 @@ def master_uri() -> str:
     return os.environ.get("ROS_MASTER_URI") or "http://localhost:11311"
 
 
-MASTER_CHECK_S = 2.0   # wall seconds between asking the master whether it is still there (on the bridge's thread)
+MASTER_CHECK_S = 2.0     # wall seconds between asking the master whether it is still there
+MASTER_TIMEOUT_S = 2.0   # a probe not answered in this time is a miss; two misses in a row: the master is gone
 
 
 class _TimeoutTransport(xmlrpc.client.Transport):
-    """xmlrpc over HTTP with a socket timeout: a master host that stopped answering cannot hold the bridge's
-    thread for longer."""
+    """xmlrpc over HTTP with a socket timeout."""
 
     def __init__(self, timeout: float):
         super().__init__()
@@ -57,16 +57,64 @@ class _TimeoutTransport(xmlrpc.client.Transport):
         return conn
 
 
-def check_master() -> None:
-    """A one-line error now rather than a node that waits for a master forever."""
+def check_master() -> int:
+    """A one-line error now rather than a node that waits for a master forever. Returns the master's pid."""
     uri = master_uri()
     try:
-        code, _, _ = xmlrpc.client.ServerProxy(uri).getPid("/opera_taichi_probe")
+        code, _, pid = xmlrpc.client.ServerProxy(uri).getPid("/opera_taichi_probe")
     except (OSError, xmlrpc.client.Error) as exc:
         raise UserError(f"--ros1: no ROS master at ROS_MASTER_URI={uri} ({exc}); start `roscore` or set "
                         f"ROS_MASTER_URI") from None
     if code != 1:
         raise UserError(f"--ros1: ROS_MASTER_URI={uri} did not answer as a ROS master")
+    return pid
+
+
+class MasterWatch:
+    """Asks the master every MASTER_CHECK_S, on a thread of its own (a host that stopped answering holds only this
+    thread), and says once when it stops answering and once when a master answers again: rospy carries on
+    silently, and a node is not registered again with a new master (another pid)."""
+
+    def __init__(self, uri: str, pid: int, log, probe=None):
+        self.uri, self._pid, self._log = uri, pid, log
+        self._probe = probe or xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(MASTER_TIMEOUT_S))
+        self._said = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ros1-master-watch", daemon=True)
+        self._thread.start()
+
+    def _ask(self) -> int | None:
+        try:
+            code, _, pid = self._probe.getPid("/opera_taichi_probe")
+        except Exception:  # noqa: BLE001 - refused, timed out, not HTTP, not XML-RPC: no master there
+            return None
+        return pid if code == 1 else None
+
+    def _say(self, text: str) -> None:
+        self._said += 1
+        self._log(("master", self._said), text)
+
+    def _run(self) -> None:
+        misses, down = 0, False
+        while not self._stop.wait(MASTER_CHECK_S):
+            pid = self._ask()
+            if pid is None:
+                misses += 1
+                if misses == 2 and not down:
+                    down = True
+                    self._say(f"the ROS master at {self.uri} stopped answering: topics already connected keep "
+                              f"flowing, but no new node can find this one (restart roscore, then the run)")
+                continue
+            misses = 0
+            if pid != self._pid:
+                self._say(f"a new ROS master answers at {self.uri}; this node is not registered with it, so new "
+                          f"subscribers and publishers cannot find it until the run is restarted")
+            elif down:
+                self._say(f"the ROS master at {self.uri} answers again")
+            down, self._pid = False, pid
+
+    def close(self) -> None:
+        self._stop.set()
 
 
 class Ros1Transport:
@@ -74,13 +122,10 @@ class Ros1Transport:
     ros_version = 1
 
     def __init__(self, store, node_name: str = "opera_taichi", log=None):
-        check_master()
+        pid = check_master()
         self.rospy = rospy = import_rospy()
         self.store = store
-        self._log = log or (lambda key, text: None)
-        self._probe = xmlrpc.client.ServerProxy(master_uri(), transport=_TimeoutTransport(1.0))
-        self._master_up, self._master_changes = True, 0
-        self._next_check = time.monotonic() + MASTER_CHECK_S
+        self._watch = MasterWatch(master_uri(), pid, log or (lambda key, text: None))
         self._classes: dict[str, type] = {}
         self._pubs: dict[str, object] = {}
         self._subs: list = []
@@ -105,36 +150,13 @@ class Ros1Transport:
                                                 queue_size=10, tcp_nodelay=True))
 
     def publish(self, topic: str, data: bytes) -> None:
-        self._watch_master()
         pub = self._pubs[topic]
         msg = pub.data_class()
         msg._buff = data
         pub.publish(msg)
 
-    def _watch_master(self) -> None:
-        """Say when the master stops answering, and when it answers again: rospy carries on silently, and a node is
-        not registered again with a new master."""
-        now = time.monotonic()
-        if now < self._next_check:
-            return
-        self._next_check = now + MASTER_CHECK_S
-        try:
-            up = self._probe.getPid("/opera_taichi_probe")[0] == 1
-        except (OSError, xmlrpc.client.Error):
-            up = False
-        if up == self._master_up:
-            return
-        self._master_up = up
-        self._master_changes += 1
-        if up:
-            text = (f"the ROS master at {master_uri()} answers again, but this node is not registered with it: new "
-                    f"subscribers and publishers cannot find it until the run is restarted")
-        else:
-            text = (f"the ROS master at {master_uri()} stopped answering: topics already connected keep flowing, "
-                    f"but no new node can find this one (restart roscore, then the run)")
-        self._log(("master", self._master_changes), text)
-
     def close(self) -> None:
+        self._watch.close()
         for s in self._subs:
             s.unregister()
         for p in self._pubs.values():
