@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import UserError
 from .geometry import quat_to_matrix, quat_to_rpy
 from .recorders import write_terrain
 
@@ -197,6 +198,11 @@ class CsvObserver(Observer):
         self.path = run.out / self.filename
         self._offset = getattr(self, "_offset", None)
         if run.resumed and self._offset is not None and self.path.is_file():
+            with open(self.path, newline="", encoding="utf-8") as fh:
+                header = next(csv.reader(fh), [])
+            if header != self.header(sim):  # a checkpoint of another version: appending would mix two layouts
+                raise UserError(f"--resume: {self.path} has the columns of another version of opera-taichi "
+                                f"({len(header)}, this one writes {len(self.header(sim))}); start the run again")
             self._fh = open(self.path, "r+", newline="", encoding="utf-8")
             self._fh.truncate(self._offset)
             self._fh.seek(self._offset)
@@ -243,6 +249,7 @@ class JointsCsv(CsvObserver):
 
     def __init__(self, rate: float):
         self.rate = rate
+        self._yaw: dict[str, float] = {}   # the last yaw written per machine on tracks: the column is unwrapped
 
     def header(self, sim) -> list[str]:
         return csv_columns(sim.model)[self.filename]
@@ -256,11 +263,24 @@ class JointsCsv(CsvObserver):
         for m in sim.model.machines:
             if not m.fixed_base:
                 xyz, quat = sim.machines[m.name].base_pose()
-                row += [*xyz, *quat_to_rpy(quat)]
+                roll, pitch, yaw = quat_to_rpy(quat)
+                last = self._yaw.get(m.name)
+                if last is not None:  # continuous through +-pi, so a turn reads as one (means, plots, studies)
+                    yaw = last + math.remainder(yaw - last, 2.0 * math.pi)
+                self._yaw[m.name] = yaw
+                row += [*xyz, roll, pitch, yaw]
         return [row]
 
+    def get_state(self) -> dict:
+        return {**super().get_state(), "yaw": dict(self._yaw)}
 
-BASE_POSE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")  # m and rad (fixed-axis), base_link in the world
+    def set_state(self, state: dict) -> None:
+        super().set_state(state)
+        self._yaw = {k: float(v) for k, v in state.get("yaw", {}).items()}
+
+
+# m and rad (fixed-axis), base_link in the world; yaw is unwrapped (it goes on past +-pi as the machine turns)
+BASE_POSE_COLUMNS = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
 def joint_columns(model) -> list[str]:

@@ -36,7 +36,8 @@ WALL_STIFFNESS_RATIO = 2.0   # ground, walls and tools: k = 2 k_n, the same surf
 # 0.3 for sand at 33 deg and above. Calibrated on heaps poured through a hopper at the default validation resolution
 # (`validate-physics repose`, 16 diameters across the column): sand (33 deg) mu_r 0.3 -> 32.7 deg; glass beads
 # (22 deg, target 22) mu_r 0.187 -> 24.7 deg, 0.147 -> 24.2, 0.130 -> 21.5, 0.12 -> 20.6, hence the exponent 1.75
-# (mu_r 0.131; with 1.5, 0.147, the heap stood 0.2 deg outside the 22 +- 2 deg gate). The cap
+# (mu_r 0.131; with 1.5, 0.147, the heap stood 0.2 deg outside the 22 +- 2 deg gate); poured from columns that
+# soil.bed_shift rebuilt light, as it did then; from columns kept as settled they stand at 32.4 and 21.2 deg. The cap
 # 0.3 comes from the coarse column collapse and passive wall runs (beds poured with friction, masses matched to the
 # bulk density): above ~0.33 the friction pour gets very loose (solid fraction < 0.41) and weak (wall 0.92 x at 0.33,
 # 0.61 x at 0.4; run-out at a = 1 1.07 at 0.35). With a dense, frictionless pour the same mu_r made beds 4-10 x too

@@ -126,3 +126,43 @@ def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
     assert abs(math.remainder(heading - yaw.mean(), 2 * math.pi)) < math.radians(3)
     assert np.abs(cols["base.roll"]).max() < 0.05 and np.abs(cols["base.pitch"]).max() < 0.05   # flat ground
     assert set(read_joint_csv(out / "joints.csv", JOINTS).joints) == set(JOINTS)
+
+
+def test_base_yaw_is_continuous_through_pi(tmp_path):
+    """A machine heading -x reads yaw about pi; the recorded column never jumps by 2 pi between samples."""
+    from opera_taichi.control import Control, MachineControl
+    from opera_taichi.runner import run_scene
+    from opera_taichi.scene import load_scene
+
+    class DriveAhead:
+        def control(self, sim, t):
+            return Control({"zx120": MachineControl(track_speeds=(0.6, 0.6))}, t, "test")
+
+    scene = load_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml",
+                       ["machine.fixed_base=false", "sim.duration=1.5", f"machine.base_pose.yaw={math.pi}",
+                        "output.plots=false"])
+    out = run_scene(scene, tmp_path / "run", quiet=True, controller=DriveAhead()).out_dir
+    yaw = read_csv_columns(out / "joints.csv")["base.yaw"]
+    assert np.abs(np.abs(yaw) - math.pi).max() < 0.05      # heading -x all along
+    assert np.abs(np.diff(yaw)).max() < 0.01               # and no +-2 pi jump as it wobbles across pi
+
+
+def test_a_resumed_csv_of_another_layout_is_refused_not_appended(tmp_path):
+    """A checkpoint of a version whose joints.csv had other columns: appending rows of the new layout would make a
+    file no reader can parse, so the resume stops first and leaves the file as it was."""
+    from opera_taichi.errors import UserError
+    from opera_taichi.observers import JointsCsv, RunContext
+    from opera_taichi.simulation import Simulation
+
+    sim = Simulation.from_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml", {"machine.fixed_base": False})
+    try:
+        old = "t," + ",".join(f"{j}.{k}" for j in JOINTS for k in ("q", "qd", "q_cmd", "qd_cmd", "effort")) + "\n"
+        (tmp_path / "joints.csv").write_text(old + "0" + ",0" * 20 + "\n")
+        before = (tmp_path / "joints.csv").read_bytes()
+        rec = JointsCsv(100.0)
+        rec.set_state({"offset": len(before)})
+        with pytest.raises(UserError, match="joints.csv has the columns of another version"):
+            rec.start(sim, RunContext(out=tmp_path, resumed=True))
+        assert (tmp_path / "joints.csv").read_bytes() == before
+    finally:
+        sim.close()

@@ -155,8 +155,9 @@ def test_live_view_shows_the_machine_digging(browser, shots, tmp_path):
     port = free_port()
     out, log = tmp_path / "live", tmp_path / "live.log"
     with open(log, "wb") as fh:   # a file, not a pipe: nobody has to drain it
-        # paced to the wall clock, so the arm moves for the motion's 25 s whatever the host's speed; the run lasts
-        # longer than any wait below (it is stopped once the shots are taken), so a slow browser cannot outlive it
+        # paced to the wall clock: the arm moves for the motion's first 25 s whatever the host's speed, and the run
+        # outlasts every wait below (it is stopped once the shots are taken), so a run that ended cannot fail it;
+        # a browser that takes longer than 25 s to show the scene still fails, on the motion
         proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "run", str(SCENE), "--view", "--view-port",
                                  str(port), "--out", str(out), "--quiet", "--pace", "realtime", *COARSE,
                                  "--set", "sim.duration=600"],

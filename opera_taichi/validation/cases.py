@@ -90,8 +90,8 @@ PARAMS: dict[str, dict[str, Param]] = {
                      "density": Param(1700.0, "kg/m3"), "preset": PRESET, "rolling_resistance": ROLLING},
     "column_collapse": {"aspect_ratio": Param(1.0, "", lambda v: 0.1 <= v <= 8, "between 0.1 and 8"),
                         "length": Param(0.4, "m"), "preset": PRESET, "rolling_resistance": ROLLING,
-                        "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, "a whole number >= 0 "
-                                      "(sim.seed: the column's packing)")},
+                        "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, ">= 0, whole (sim.seed: "
+                                      "the column's packing)")},
     "repose": {"preset": PRESET, "rolling_resistance": ROLLING},
     "vertical_cut": {"height": Param(None, "m (default: 0.6 x the Culmann height of the preset)"),
                      "preset": Param("dirt", "", None, "a soil preset")},
