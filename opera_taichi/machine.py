@@ -22,7 +22,9 @@ from ._quiet import quiet_c_output
 with quiet_c_output():  # pybullet's C code prints its build time on import; keep stdout for our output
     import pybullet as pb
 from .errors import UserError
+from .geometry import quat_to_matrix
 from .machine_description import MOVABLE, MachineDescription, atomic_write
+from .tracks import TrackGround
 
 
 
@@ -94,11 +96,18 @@ class BulletMachine:
 
         self._wheels_left, self._wheels_right = [], []
         self._wheel_speed = (0.0, 0.0)
+        self._ground = None
         if not self.fixed_base:
             for name_, index in joint_index.items():
                 if name_.startswith("track_wheel_"):
                     (self._wheels_left if "_left_" in name_ else self._wheels_right).append(index)
-                    pb.changeDynamics(self.body, index, lateralFriction=desc.tracks["friction"], physicsClientId=c)
+                    # the wheels only carry the weight; the tracks' grip is TrackGround's
+                    pb.changeDynamics(self.body, index, lateralFriction=0.0, physicsClientId=c)
+            self._wheels = self._wheels_left + self._wheels_right
+            self._wheel_side = np.array([0] * len(self._wheels_left) + [1] * len(self._wheels_right))
+            mass = sum(pb.getDynamicsInfo(self.body, i, physicsClientId=c)[0]
+                       for i in range(-1, pb.getNumJoints(self.body, physicsClientId=c)))
+            self._ground = TrackGround(desc.tracks, mass, gravity)
         self.world.attach(self)
         self._read_joints()
 
@@ -224,18 +233,40 @@ class BulletMachine:
         pb.setJointMotorControlArray(self.body, self._indices, pb.VELOCITY_CONTROL, targetVelocities=speed.tolist(),
                                      forces=self._max_torque.tolist(), physicsClientId=c)
         if not self.fixed_base:
-            radius, torque = self.desc.tracks["wheel_radius"], self.desc.tracks["max_wheel_torque"]
-            wheel_speed = (0.0, 0.0) if self._hold else self._wheel_speed
-            for wheels, surface_speed in zip((self._wheels_left, self._wheels_right), wheel_speed):
-                pb.setJointMotorControlArray(self.body, wheels, pb.VELOCITY_CONTROL,
-                                             targetVelocities=[surface_speed / radius] * len(wheels),
-                                             forces=[torque] * len(wheels), physicsClientId=c)
+            self._apply_track_forces()
         # Bullet clears external forces after every stepSimulation, so they are applied here, each step
         for index, (force, torque) in self._pending_wrenches.items():
             origin = self._link_state(index)[0]
             pb.applyExternalForce(self.body, index, force.tolist(), origin.tolist(), pb.WORLD_FRAME, physicsClientId=c)
             pb.applyExternalTorque(self.body, index, torque.tolist(), pb.WORLD_FRAME, physicsClientId=c)
         self._pending_wrenches.clear()
+
+    def _apply_track_forces(self) -> None:
+        """The ground's grip on the tracks (TrackGround) at each wheel's contact, from the loads of the last step."""
+        c = self.client
+        pb.setJointMotorControlArray(self.body, self._wheels, pb.VELOCITY_CONTROL, forces=[0.0] * len(self._wheels),
+                                     physicsClientId=c)   # free wheels: the tracks' drive is in the forces below
+        n = len(self._wheels)
+        normal, point, up = np.zeros(n), np.zeros((n, 3)), np.array([0.0, 0.0, 1.0])
+        for k, w in enumerate(self._wheels):
+            for cp in pb.getContactPoints(bodyA=self.body, linkIndexA=w, physicsClientId=c):
+                if cp[2] != self.body and cp[9] > 0.0:
+                    normal[k] += cp[9]
+                    point[k] += cp[9] * np.asarray(cp[6])
+                    up = np.asarray(cp[7])   # on the ground (body B), towards the wheel
+        if not normal.any():
+            self._ground.stick[:] = 0.0
+            return
+        point[normal > 0] /= normal[normal > 0, None]
+        com, _ = pb.getBasePositionAndOrientation(self.body, physicsClientId=c)
+        vel, omega = (np.asarray(v) for v in pb.getBaseVelocity(self.body, physicsClientId=c))
+        velocity = vel + np.cross(omega, point - np.asarray(com))
+        heading = quat_to_matrix(self.base_pose()[1])[:, 0]
+        speeds = (0.0, 0.0) if self._hold else self._wheel_speed
+        forces = self._ground.forces(normal, velocity, heading, up, self._wheel_side, speeds, self.dt)
+        for k in np.flatnonzero(normal > 0):
+            pb.applyExternalForce(self.body, -1, forces[k].tolist(), point[k].tolist(), pb.WORLD_FRAME,
+                                  physicsClientId=c)
 
     def post_step(self) -> None:
         self._link_cache.clear()
@@ -298,7 +329,8 @@ class BulletMachine:
             track_speeds=np.array(self._wheel_speed, float),
             other_q=np.array([s[0] for s in other]), other_qd=np.array([s[1] for s in other]),
             base_com_xyz=np.array(pos), base_com_quat=np.array(orn), base_com_vel=np.array(vel),
-            base_com_omega=np.array(omega))
+            base_com_omega=np.array(omega),
+            track_stick=np.zeros((0, 2)) if self._ground is None else self._ground.stick.copy())
 
     def set_state(self, s) -> None:
         if list(s.joints) != self.joint_names:
@@ -318,6 +350,8 @@ class BulletMachine:
         self._hold = bool(s.hold)
         self._link_cache.clear()
         self._wheel_speed = (float(s.track_speeds[0]), float(s.track_speeds[1]))
+        if self._ground is not None:
+            self._ground.stick[:] = s.track_stick
         self._pending_wrenches.clear()
 
     def link_state(self, link: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -30,6 +30,9 @@ CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joi
                "struck_volume", "command_latency")
 ACTUATOR_KEYS = ("max_speed", "max_torque", "gain")
 TRACK_KEYS = ("wheel_radius", "wheel_mass", "x", "gauge", "friction", "max_wheel_torque")
+# optional: the ground's resistance to sideways slip of a track (opera_taichi/tracks.py); below the tractive friction,
+# or the machine cannot turn on the spot
+LATERAL_FRICTION_SHARE = 0.6   # default lateral_friction / friction
 
 
 @dataclass
@@ -380,9 +383,10 @@ def _tracks(cfg, where) -> dict | None:
         return None
     if not isinstance(tracks, dict):
         raise UserError(f"{where}: tracks must be a mapping with {', '.join(TRACK_KEYS)}")
-    unknown = [key for key in tracks if key not in TRACK_KEYS]
+    unknown = [key for key in tracks if key not in TRACK_KEYS + ("lateral_friction",)]
     if unknown:
-        raise UserError(f"{where}: tracks.{unknown[0]}: unknown key (allowed: {', '.join(TRACK_KEYS)})")
+        raise UserError(f"{where}: tracks.{unknown[0]}: unknown key (allowed: {', '.join(TRACK_KEYS)}, "
+                        f"lateral_friction)")
     out = {}
     for key in TRACK_KEYS:
         if key not in tracks:
@@ -395,6 +399,8 @@ def _tracks(cfg, where) -> dict | None:
             out["x"] = [float(v) for v in xs]
         else:
             out[key] = _positive(tracks[key], f"{where}: tracks.{key}")
+    out["lateral_friction"] = _positive(tracks["lateral_friction"], f"{where}: tracks.lateral_friction") \
+        if "lateral_friction" in tracks else LATERAL_FRICTION_SHARE * out["friction"]
     return out
 
 

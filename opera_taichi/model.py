@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from .soil import SoilBulk, SoilMicro
 
 # Bumped when the meaning of a checkpoint's arrays changes: an older checkpoint is then refused, not misread.
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2   # 2: MachineState.track_stick
 MIN_SOIL_DT = 1e-7   # s: a finer soil substep takes hours of wall time per simulated second (a stiffness typo)
 
 

@@ -37,6 +37,7 @@ class MachineState:
     base_com_quat: np.ndarray  # (4,) x, y, z, w
     base_com_vel: np.ndarray   # (3,) m/s
     base_com_omega: np.ndarray  # (3,) rad/s
+    track_stick: np.ndarray    # (wheels, 2) m: each track contact's stick displacement (tracks.py); (0, 2) fixed
 
     @property
     def q_cmd(self) -> np.ndarray:

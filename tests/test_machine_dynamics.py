@@ -156,6 +156,51 @@ def test_tracked_machine_stands_on_the_ground_and_drives_straight(desc):
     machine.close()
 
 
+def _yaw(orientation) -> float:
+    from opera_taichi.geometry import quat_to_rpy
+
+    return float(quat_to_rpy(orientation)[2])
+
+
+def test_a_tracked_machine_turns_on_the_spot_either_way(desc):
+    """Counter-rotating tracks turn the machine about its middle, the same either way; the tracks slip sideways
+    (lateral_friction below friction), so it turns slower than the tracks' kinematic 0.4 rad/s but it turns."""
+    turned = []
+    for left, right in ((-0.4, 0.4), (0.4, -0.4)):
+        machine = BulletMachine(desc, dt=DT, initial_q=PHYSX_POSE, fixed_base=False)
+        run(machine, 1.0)
+        start, _ = machine.base_pose()
+        machine.set_track_speeds(left, right)
+        run(machine, 3.0)
+        position, orientation = machine.base_pose()
+        turned.append(_yaw(orientation))
+        assert np.linalg.norm(position[:2] - start[:2]) < 0.1
+        machine.close()
+    assert turned[0] > math.radians(20) and turned[1] < -math.radians(20)   # 69 deg without slip
+    assert turned[0] == pytest.approx(-turned[1], rel=0.15)
+
+
+def test_a_parked_machine_holds_a_side_push_below_the_tracks_grip_and_slides_above(desc):
+    """Across its tracks the ground holds the machine up to lateral_friction x its weight (Coulomb): a push of 0.8 x
+    that moves it by the elastic stick only, a push of 1.2 x slides it away."""
+    import pybullet as pb
+
+    moved = []
+    for share in (0.8, 1.2):
+        machine = BulletMachine(desc, dt=DT, initial_q=PHYSX_POSE, fixed_base=False)
+        c = machine.client
+        weight = 9.81 * sum(pb.getDynamicsInfo(machine.body, i, physicsClientId=c)[0]
+                            for i in range(-1, pb.getNumJoints(machine.body, physicsClientId=c)))
+        push = share * desc.tracks["lateral_friction"] * weight
+        run(machine, 1.0)
+        start, _ = machine.base_pose()
+        run(machine, 2.0, lambda: machine.apply_link_wrench(machine.base_link, [0.0, push, 0.0], [0.0, 0.0, 0.0]))
+        moved.append(float(machine.base_pose()[0][1] - start[1]))
+        machine.close()
+    assert 0.0 < moved[0] < 0.02
+    assert moved[1] > 0.5
+
+
 def test_fixed_base_refuses_track_commands_and_unknown_names(desc):
     machine = BulletMachine(desc, dt=DT)
     with pytest.raises(UserError, match="fixed base"):
