@@ -6,7 +6,7 @@ Each actuated joint follows its position target through a speed command
 applied as a velocity motor that can exert at most max_torque: an overloaded joint stalls or is pushed
 back, it never teleports, and it never runs faster than its speed limit. Non-actuated movable joints
 (OPERA's bucket_end_joint) are welded. Without a fixed base the machine stands on a ground plane on three
-driven wheels per side (skid steer), which stand in for the tracks.
+frictionless wheels per side, and the ground grips its tracks where they touch (tracks.py; skid steer).
 """
 from __future__ import annotations
 
@@ -108,6 +108,7 @@ class BulletMachine:
             mass = sum(pb.getDynamicsInfo(self.body, i, physicsClientId=c)[0]
                        for i in range(-1, pb.getNumJoints(self.body, physicsClientId=c)))
             self._ground = TrackGround(desc.tracks, mass, gravity)
+        self._contacts = None   # the track contacts a state brought (set_state), for the step after it
         self.world.attach(self)
         self._read_joints()
 
@@ -247,17 +248,23 @@ class BulletMachine:
         pb.setJointMotorControlArray(self.body, self._wheels, pb.VELOCITY_CONTROL, forces=[0.0] * len(self._wheels),
                                      physicsClientId=c)   # free wheels: the tracks' drive is in the forces below
         n = len(self._wheels)
-        normal, point, up = np.zeros(n), np.zeros((n, 3)), np.array([0.0, 0.0, 1.0])
+        normal, point, up = np.zeros(n), np.zeros((n, 3)), np.tile([0.0, 0.0, 1.0], (n, 1))
+        ground = self.world.ground
         for k, w in enumerate(self._wheels):
-            for cp in pb.getContactPoints(bodyA=self.body, linkIndexA=w, physicsClientId=c):
-                if cp[2] != self.body and cp[9] > 0.0:
+            for cp in pb.getContactPoints(bodyA=self.body, bodyB=ground, linkIndexA=w, physicsClientId=c):
+                if cp[9] > 0.0:
                     normal[k] += cp[9]
                     point[k] += cp[9] * np.asarray(cp[6])
-                    up = np.asarray(cp[7])   # on the ground (body B), towards the wheel
+                    up[k] = cp[7]   # the ground's normal (body B), towards the wheel
+        point[normal > 0] /= normal[normal > 0, None]
+        if self._contacts is not None:  # the first step after set_state: Bullet has no contacts yet, the state has
+            if not normal.any():
+                normal, point, up = self._contacts
+            self._contacts = None
         if not normal.any():
             self._ground.stick[:] = 0.0
             return
-        point[normal > 0] /= normal[normal > 0, None]
+        self._ground.contacts = (normal.copy(), point.copy(), up.copy())
         com, _ = pb.getBasePositionAndOrientation(self.body, physicsClientId=c)
         vel, omega = (np.asarray(v) for v in pb.getBaseVelocity(self.body, physicsClientId=c))
         velocity = vel + np.cross(omega, point - np.asarray(com))
@@ -330,7 +337,8 @@ class BulletMachine:
             other_q=np.array([s[0] for s in other]), other_qd=np.array([s[1] for s in other]),
             base_com_xyz=np.array(pos), base_com_quat=np.array(orn), base_com_vel=np.array(vel),
             base_com_omega=np.array(omega),
-            track_stick=np.zeros((0, 2)) if self._ground is None else self._ground.stick.copy())
+            track_stick=np.zeros((0, 2)) if self._ground is None else self._ground.stick.copy(),
+            track_contacts=np.zeros((0, 7)) if self._ground is None else np.column_stack(self._ground.contacts))
 
     def set_state(self, s) -> None:
         if list(s.joints) != self.joint_names:
@@ -352,6 +360,9 @@ class BulletMachine:
         self._wheel_speed = (float(s.track_speeds[0]), float(s.track_speeds[1]))
         if self._ground is not None:
             self._ground.stick[:] = s.track_stick
+            self._contacts = (s.track_contacts[:, 0].copy(), s.track_contacts[:, 1:4].copy(),
+                              s.track_contacts[:, 4:7].copy())
+            self._ground.contacts = self._contacts
         self._pending_wrenches.clear()
 
     def link_state(self, link: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -84,6 +84,10 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
     tip_link, soil_links = _tip_and_soil_links(cfg, where, links, children, root, warnings,
                                                from_config=bool(config_path))
     tracks = _tracks(cfg, where)
+    if tracks is not None and tracks["lateral_friction"] >= tracks["friction"]:
+        warnings.append(f"{where}: tracks.lateral_friction {tracks['lateral_friction']:g} >= tracks.friction "
+                        f"{tracks['friction']:g}: a machine on these tracks can hardly turn on the spot (the ground's "
+                        f"grip across a track is usually 0.6-0.8 of its grip along it)")
     masses = _masses(cfg, where, links)
 
     meshes = _MeshCache(urdf_path)

@@ -46,7 +46,7 @@ class RigidWorld:
             self._filter_ground(machine)
 
     def _filter_ground(self, machine) -> None:
-        """Only track wheels touch the ground (Bullet multiplies the two frictions: 1.0 x the tracks')."""
+        """Only track wheels touch the ground (their wheels are frictionless: the tracks' grip is tracks.py's)."""
         c = self.client
         wheels = set(machine._wheels_left + machine._wheels_right)
         for link in [-1, *range(pb.getNumJoints(machine.body, physicsClientId=c))]:

@@ -38,6 +38,7 @@ class MachineState:
     base_com_vel: np.ndarray   # (3,) m/s
     base_com_omega: np.ndarray  # (3,) rad/s
     track_stick: np.ndarray    # (wheels, 2) m: each track contact's stick displacement (tracks.py); (0, 2) fixed
+    track_contacts: np.ndarray  # (wheels, 7): the last step's normal load N, contact point, ground normal
 
     @property
     def q_cmd(self) -> np.ndarray:

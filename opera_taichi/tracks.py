@@ -28,19 +28,23 @@ class TrackGround:
         self.c = 2.0 * math.sqrt(self.k * share)                   # critically damped on its share of the mass
         self.drive_limit = len(tracks["x"]) * tracks["max_wheel_torque"] / tracks["wheel_radius"]   # N per side
         self.stick = np.zeros((n, 2))                              # per wheel: (along, across) displacement, m
+        # the last step's contacts: per wheel its normal load (N), point and ground normal (world)
+        self.contacts = (np.zeros(n), np.zeros((n, 3)), np.tile([0.0, 0.0, 1.0], (n, 1)))
 
     def forces(self, normal: np.ndarray, velocity: np.ndarray, heading: np.ndarray, up: np.ndarray,
                side: np.ndarray, track_speed: tuple[float, float], dt: float) -> np.ndarray:
         """World forces (n, 3) on the base at each wheel's contact.
 
         normal (n,): normal load of each wheel (0: off the ground); velocity (n, 3): the base's velocity at each
-        contact point; heading, up (3,): the base's x axis and the ground normal; side (n,): 0 left, 1 right;
-        track_speed: each side's surface speed (m/s, forward positive)."""
-        along = heading - up * float(heading @ up)
-        along /= np.linalg.norm(along)
+        contact point; heading (3,): the base's x axis; up (n, 3): the ground's normal at each contact; side (n,):
+        0 left, 1 right; track_speed: each side's surface speed (m/s, forward positive)."""
+        along = heading[None, :] - up * (up @ heading)[:, None]
+        length = np.linalg.norm(along, axis=1)
+        on = (normal > 0.0) & (length > 1e-6)   # (a track standing on its end has no along: no grip)
+        along = along / np.where(length > 1e-6, length, 1.0)[:, None]
         across = np.cross(up, along)
-        slip = np.stack([velocity @ along - np.asarray(track_speed, float)[side], velocity @ across], axis=1)
-        on = normal > 0.0
+        slip = np.stack([np.sum(velocity * along, axis=1) - np.asarray(track_speed, float)[side],
+                         np.sum(velocity * across, axis=1)], axis=1)
         self.stick[~on] = 0.0
         self.stick[on] += slip[on] * dt
         trial = -(self.k * self.stick + self.c * slip)
@@ -53,7 +57,8 @@ class TrackGround:
             if total > self.drive_limit:
                 f[mine, 0] *= self.drive_limit / total
         f[~on] = 0.0
-        # a slipping contact keeps the stick displacement its capped force stands for
+        # a slipping contact: its spring alone carries the capped force (no damping while it slides), so the force
+        # stays at Coulomb's and points against the slip
         capped = np.any(f != trial, axis=1) & on
-        self.stick[capped] = -(f[capped] + self.c * slip[capped]) / self.k
+        self.stick[capped] = -f[capped] / self.k
         return f[:, :1] * along + f[:, 1:] * across

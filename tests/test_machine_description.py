@@ -239,3 +239,17 @@ def test_errors_name_the_file_and_what_is_wrong(tmp_path):
     assert _one_line_error(good, actuator_overrides={"hinge": {"max_torque": 0}}).startswith(
         "actuators.hinge.max_torque")
     assert "(did you mean 'hinge'?)" in _one_line_error(good, actuator_overrides={"hinje": {"max_torque": 1}})
+
+
+def test_tracks_lateral_friction_defaults_below_the_tractive_and_a_higher_one_is_warned(tmp_path):
+    settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
+    urdf = machines_dir() / "zx120" / "zx120.urdf"
+    del settings["tracks"]["lateral_friction"]
+    (tmp_path / "default.yaml").write_text(yaml.safe_dump(settings))
+    desc = load_machine(urdf, config=tmp_path / "default.yaml")
+    assert desc.tracks["lateral_friction"] == pytest.approx(0.6 * desc.tracks["friction"])
+    assert not any("lateral_friction" in w for w in desc.warnings)
+    settings["tracks"]["lateral_friction"] = settings["tracks"]["friction"]
+    (tmp_path / "grippy.yaml").write_text(yaml.safe_dump(settings))
+    desc = load_machine(urdf, config=tmp_path / "grippy.yaml")
+    assert any("tracks.lateral_friction 0.8 >= tracks.friction 0.8" in w and "turn" in w for w in desc.warnings)

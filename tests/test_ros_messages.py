@@ -377,35 +377,37 @@ def test_command_latency_comes_from_machine_yaml_or_the_scene(tmp_path):
         build_model(load_scene(DIG_CYCLE, [f"machine.config={cfg}"]))
 
 
-def test_the_ros1_master_watch_says_a_gone_master_once_and_tells_a_new_one_from_the_same(monkeypatch):
-    """One slow probe is not a dead master; two misses in a row are, said once; the same master back (its pid) is
-    said as such, and a new master (another pid, which does not know this node) is said as a new one."""
+def test_the_ros1_master_watch_says_a_gone_master_once_and_a_master_that_forgot_the_node(monkeypatch):
+    """One slow probe is not a dead master; two misses in a row are, said once; a master back that still knows the
+    node is said as such, and one that does not (a restarted roscore) is said as a master to restart the run for."""
     import threading
 
     from opera_taichi.ros import transport_ros1
 
     monkeypatch.setattr(transport_ros1, "MASTER_CHECK_S", 0.001)
-    script = [42, None, 42, None, None, None, 42, None, None, 7, 7]   # pids; None: no answer
+    # per probe: 1 the master knows the node, -1 it answers but does not, None no answer
+    script = [1, None, 1, None, None, None, 1, None, None, -1, -1, 1]
     done = threading.Event()
 
     class Probe:
-        def getPid(self, caller):
+        def lookupNode(self, caller, node):
+            assert node == "/opera_taichi_1234"
             if not script:
                 done.set()
                 raise OSError("end of script")
-            pid = script.pop(0)
-            if pid is None:
+            code = script.pop(0)
+            if code is None:
                 raise TimeoutError("timed out")
-            return [1, "", pid]
+            return [code, "", "http://node:1"]
 
     said = []
-    watch = transport_ros1.MasterWatch("http://127.0.0.1:1", 42, lambda key, text: said.append((key, text)),
-                                       probe=Probe())
+    watch = transport_ros1.MasterWatch("http://127.0.0.1:1", "/opera_taichi_1234",
+                                       lambda key, text: said.append((key, text)), probe=Probe())
     try:
         assert done.wait(30)
     finally:
         watch.close()
     texts = [t for _, t in said]
     assert len({k for k, _ in said}) == len(said)        # each its own key: the bridge says each once
-    assert [("stopped" in t, "answers again" in t, "new ROS master" in t) for t in texts][:4] == [
-        (True, False, False), (False, True, False), (True, False, False), (False, False, True)]
+    assert [("stopped" in t, "answers again" in t, "does not know this node" in t) for t in texts][:5] == [
+        (True, False, False), (False, True, False), (True, False, False), (False, False, True), (False, True, False)]

@@ -57,64 +57,66 @@ class _TimeoutTransport(xmlrpc.client.Transport):
         return conn
 
 
-def check_master() -> int:
-    """A one-line error now rather than a node that waits for a master forever. Returns the master's pid."""
+def check_master() -> None:
+    """A one-line error now rather than a node that waits for a master forever."""
     uri = master_uri()
     try:
-        code, _, pid = xmlrpc.client.ServerProxy(uri).getPid("/opera_taichi_probe")
+        code, _, _ = xmlrpc.client.ServerProxy(uri).getPid("/opera_taichi_probe")
     except (OSError, xmlrpc.client.Error) as exc:
         raise UserError(f"--ros1: no ROS master at ROS_MASTER_URI={uri} ({exc}); start `roscore` or set "
                         f"ROS_MASTER_URI") from None
     if code != 1:
         raise UserError(f"--ros1: ROS_MASTER_URI={uri} did not answer as a ROS master")
-    return pid
 
 
 class MasterWatch:
     """Asks the master every MASTER_CHECK_S, on a thread of its own (a host that stopped answering holds only this
-    thread), and says once when it stops answering and once when a master answers again: rospy carries on
-    silently, and a node is not registered again with a new master (another pid)."""
+    thread), whether it still knows this node, and says once when it stops answering and once when a master answers
+    again: rospy carries on silently, and a restarted master does not know the node until the run is restarted."""
 
-    def __init__(self, uri: str, pid: int, log, probe=None):
-        self.uri, self._pid, self._log = uri, pid, log
+    def __init__(self, uri: str, node: str, log, probe=None):
+        self.uri, self.node, self._log = uri, node, log
         self._probe = probe or xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(MASTER_TIMEOUT_S))
         self._said = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ros1-master-watch", daemon=True)
         self._thread.start()
 
-    def _ask(self) -> int | None:
+    def _ask(self) -> bool | None:
+        """True: the master knows this node; False: a master answers that does not; None: no answer."""
         try:
-            code, _, pid = self._probe.getPid("/opera_taichi_probe")
+            code, _, _ = self._probe.lookupNode("/opera_taichi_probe", self.node)
         except Exception:  # noqa: BLE001 - refused, timed out, not HTTP, not XML-RPC: no master there
             return None
-        return pid if code == 1 else None
+        return code == 1
 
     def _say(self, text: str) -> None:
         self._said += 1
         self._log(("master", self._said), text)
 
     def _run(self) -> None:
-        misses, down = 0, False
+        misses, state = 0, True   # state: True knows the node, False does not, None gone
         while not self._stop.wait(MASTER_CHECK_S):
-            pid = self._ask()
-            if pid is None:
+            known = self._ask()
+            if known is None:
                 misses += 1
-                if misses == 2 and not down:
-                    down = True
+                if misses == 2 and state is not None:
+                    state = None
                     self._say(f"the ROS master at {self.uri} stopped answering: topics already connected keep "
                               f"flowing, but no new node can find this one (restart roscore, then the run)")
                 continue
             misses = 0
-            if pid != self._pid:
-                self._say(f"a new ROS master answers at {self.uri}; this node is not registered with it, so new "
-                          f"subscribers and publishers cannot find it until the run is restarted")
-            elif down:
-                self._say(f"the ROS master at {self.uri} answers again")
-            down, self._pid = False, pid
+            if known != state:
+                if known:
+                    self._say(f"the ROS master at {self.uri} answers again")
+                else:
+                    self._say(f"a ROS master answers at {self.uri} but does not know this node (a restarted "
+                              f"roscore): new subscribers and publishers cannot find it until the run is restarted")
+                state = known
 
     def close(self) -> None:
         self._stop.set()
+        self._thread.join(MASTER_TIMEOUT_S + 1.0)   # a probe in flight says its last before the run's summary
 
 
 class Ros1Transport:
@@ -122,15 +124,15 @@ class Ros1Transport:
     ros_version = 1
 
     def __init__(self, store, node_name: str = "opera_taichi", log=None):
-        pid = check_master()
+        check_master()
         self.rospy = rospy = import_rospy()
         self.store = store
-        self._watch = MasterWatch(master_uri(), pid, log or (lambda key, text: None))
         self._classes: dict[str, type] = {}
         self._pubs: dict[str, object] = {}
         self._subs: list = []
         # no signal handlers: SIGINT/SIGTERM end the run and close its folder (cli.py), not rospy
         rospy.init_node(node_name, anonymous=True, disable_signals=True, argv=[sys.argv[0]])
+        self._watch = MasterWatch(master_uri(), rospy.get_name(), log or (lambda key, text: None))
 
     def _raw_class(self, typename: str) -> type:
         cls = self._classes.get(typename)
