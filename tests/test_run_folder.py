@@ -111,8 +111,9 @@ def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
         def control(self, sim, t):
             return Control({"zx120": MachineControl(track_speeds=(0.6, 0.6))}, t, "test")
 
-    scene = load_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml", ["machine.fixed_base=false", "sim.duration=3",
-                                                                  "machine.base_pose.yaw=0.5235987755982988", "output.plots=false"])
+    scene = load_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml",
+                       ["machine.fixed_base=false", "sim.duration=3", f"machine.base_pose.yaw={math.radians(30)}",
+                        "output.plots=false"])
     out = run_scene(scene, tmp_path / "run", quiet=True, controller=DriveAhead()).out_dir
     with open(out / "joints.csv") as fh:
         header = next(csv.reader(fh))
