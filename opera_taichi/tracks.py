@@ -4,7 +4,7 @@ Bullet's wheels carry the machine's weight (frictionless, so they only push back
 gives each contact the track's tangential force instead. Along the track it drives the ground under the contact at
 the track's surface speed; across it resists sideways slip. Each contact holds an elastic stick displacement, as a
 DEM contact spring does, so a parked or digging machine stays put instead of creeping, and its force is capped by
-Coulomb on an ellipse: tractive_friction x N along the track, lateral_friction x N across it. A crawler turns by
+Coulomb on an ellipse: `friction` x N along the track, `lateral_friction` x N across it. A crawler turns by
 slipping its tracks sideways, which needs lateral resistance below the tractive grip (Wong, Theory of Ground
 Vehicles: about 0.5-0.7 across and 0.8 along on firm soil). Each side's total drive force is capped by its motors
 (n wheels x max_wheel_torque / wheel_radius).

@@ -99,11 +99,9 @@ def test_a_runs_own_joints_csv_replays_as_a_csv_motion(dig_run, tmp_path):
         assert np.max(np.abs(replay[f"{j}.q_cmd"][1:] - original[f"{j}.q"][1:])) < 1e-3, j
 
 
-def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
-    """fixed_base false: joints.csv ends with the base_link pose, and the heading it records is the direction the
-    machine drives in. The log still replays as a csv motion (the base columns are not joints)."""
+def _drive_ahead_on_tracks(tmp_path, yaw: float, seconds: float) -> Path:
+    """The dig-cycle machine on tracks, facing `yaw`, driven straight ahead at 0.6 m/s; returns its run folder."""
     from opera_taichi.control import Control, MachineControl
-    from opera_taichi.motion import read_joint_csv
     from opera_taichi.runner import run_scene
     from opera_taichi.scene import load_scene
 
@@ -112,9 +110,17 @@ def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
             return Control({"zx120": MachineControl(track_speeds=(0.6, 0.6))}, t, "test")
 
     scene = load_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml",
-                       ["machine.fixed_base=false", "sim.duration=3", f"machine.base_pose.yaw={math.radians(30)}",
+                       ["machine.fixed_base=false", f"sim.duration={seconds}", f"machine.base_pose.yaw={yaw}",
                         "output.plots=false"])
-    out = run_scene(scene, tmp_path / "run", quiet=True, controller=DriveAhead()).out_dir
+    return run_scene(scene, tmp_path / "run", quiet=True, controller=DriveAhead()).out_dir
+
+
+def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
+    """fixed_base false: joints.csv ends with the base_link pose, and the heading it records is the direction the
+    machine drives in. The log still replays as a csv motion (the base columns are not joints)."""
+    from opera_taichi.motion import read_joint_csv
+
+    out = _drive_ahead_on_tracks(tmp_path, math.radians(30), 3.0)
     with open(out / "joints.csv") as fh:
         header = next(csv.reader(fh))
     assert header[-6:] == [f"base.{k}" for k in ("x", "y", "z", "roll", "pitch", "yaw")]
@@ -131,19 +137,7 @@ def test_a_machine_on_tracks_logs_its_base_pose(tmp_path):
 
 def test_base_yaw_is_continuous_through_pi(tmp_path):
     """A machine heading -x reads yaw about pi; the recorded column never jumps by 2 pi between samples."""
-    from opera_taichi.control import Control, MachineControl
-    from opera_taichi.runner import run_scene
-    from opera_taichi.scene import load_scene
-
-    class DriveAhead:
-        def control(self, sim, t):
-            return Control({"zx120": MachineControl(track_speeds=(0.6, 0.6))}, t, "test")
-
-    scene = load_scene(ROOT / "scenes" / "zx120_dig_cycle.yaml",
-                       ["machine.fixed_base=false", "sim.duration=1.5", f"machine.base_pose.yaw={math.pi}",
-                        "output.plots=false"])
-    out = run_scene(scene, tmp_path / "run", quiet=True, controller=DriveAhead()).out_dir
-    yaw = read_csv_columns(out / "joints.csv")["base.yaw"]
+    yaw = read_csv_columns(_drive_ahead_on_tracks(tmp_path, math.pi, 1.5) / "joints.csv")["base.yaw"]
     assert np.abs(np.abs(yaw) - math.pi).max() < 0.05      # heading -x all along
     assert np.abs(np.diff(yaw)).max() < 0.01               # and no +-2 pi jump as it wobbles across pi
 
