@@ -12,6 +12,7 @@ after the first run of a size; run the command twice for a cold cache). A table 
   the loop), particle-steps per second, and the bucket's mean draft over the drag (8-16 s) against the earthmoving
   equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade)
 
+`--arch cuda` runs the soil in its GPU layout (one thread per grain; docs/performance.md).
 `--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
 host's speed drifts by 10% from run to run). `--spin-wait` runs with sim.spin_wait (the other cores kept running
 while the soil steps; docs/performance.md). Report the host: `lscpu | grep 'Model name'` and whether other work

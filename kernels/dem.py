@@ -49,6 +49,10 @@ a pair adds the force on its holder to the holder's sum and writes the opposite 
 which the partner reads from its reverse segment. Every sum has a fixed order, so results
 do not depend on thread scheduling (deterministic for a seed, backend and thread count), and the two sides of a
 pair get exactly opposite forces: linear momentum is conserved to round-off.
+
+A GPU's layout (substep_per_particle, sort_by_bucket_parallel, build_reverse_parallel; DemSoil.per_particle) gives
+the step loop one particle per iteration and the rebuilds parallel scans: the same particles, lists and slots, but
+the tool wrenches summed by atomics in thread order (the same physics, not the same bits from run to run).
 """
 import types
 
@@ -58,6 +62,7 @@ import taichi as ti
 # CPU only): a parallel loop costs a thread-pool round trip (15-40 us on a 2-core host) even when it has
 # nothing to do, more than a few hundred awake particles cost to compute; DemSoil picks one per run of substeps.
 SERIAL_LOOPS = False
+PER_PARTICLE = False  # the step loop's layout: a block of particles per iteration (CPU) or one (GPU); see substep
 MAX_TOOLS = 4
 MAX_PITS = 16
 WALL_SLOTS = 4
@@ -646,6 +651,9 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
         blk_hot[b] = 0
         if active != 0:
             blk_list[ti.atomic_add(blk_list[0], 1) + 1] = b
+            if ti.static(PER_PARTICLE):  # (step() grows it particle by particle)
+                blk_box[b, 0] = vec3(HUGE)
+                blk_box[b, 1] = vec3(-HUGE)
 
 
 @ti.kernel
@@ -708,13 +716,23 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
     # Taichi's CPU thread pool hands out a parallel loop in tasks of 512 iterations (whatever its block_dim): over
     # the listed blocks alone, a few hundred of them would make one task for one thread. Each block takes
     # STEP_SPREAD iterations (all but the first skip), so a task is 512 / STEP_SPREAD blocks.
+    # The GPU layout (PER_PARTICLE) gives each particle of a listed block its own iteration instead.
     spread = ti.static(1 if SERIAL_LOOPS else STEP_SPREAD)
+    per_block = spread
+    if ti.static(PER_PARTICLE):
+        per_block = block
     ti.loop_config(serialize=SERIAL_LOOPS)
-    for kb_spread in range(blk_list[0] * spread):
-        if kb_spread % spread != 0:
-            continue
-        kb = kb_spread // spread
+    for item in range(blk_list[0] * per_block):
+        if ti.static(not PER_PARTICLE):
+            if item % spread != 0:
+                continue
+        kb = item // per_block
         blk = blk_list[kb + 1]
+        first = n_frozen + blk * block
+        last = ti.min(n_act, first + block)
+        if ti.static(PER_PARTICLE):
+            first += item % block
+            last = ti.min(last, first + 1)
         travel = ti.f64(0.0)  # summed over the tools, which a particle's tool_gap is compared with
         for t in range(MAX_TOOLS):
             if tools[t, T_ON] > 0.0:
@@ -727,7 +745,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         lost_mass = ti.f64(0.0)
         lost_count = ti.f64(0.0)
         tool_sum = ti.Matrix.zero(ti.f64, MAX_TOOLS, 6)
-        for i in range(n_frozen + blk * block, ti.min(n_act, n_frozen + (blk + 1) * block)):
+        for i in range(first, last):
             if flags[i] == 1:  # (all of 0..n_act are active: a deactivation triggers a rebuild at once)
                 word = surf_id[i, TOOL_BITS]
                 if sleep_steps > 0 and (word >> CALM_SHIFT) >= sleep_steps:
@@ -923,18 +941,39 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                         surf_id[i, TOOL_BITS] = tool_bits
             else:  # (inactive: left the domain; a rebuild follows)
                 blk_hot[blk] = 1
-        blk_box[blk, 0] = box_lo
-        blk_box[blk, 1] = box_hi
-        ti.atomic_max(stat[S_DISP2], disp2_max)
-        ti.atomic_max(stat[S_SPEED2], speed2_max)
-        for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
-            partial[blk, 6 * t + c] = tool_sum[t, c]
-        partial[blk, PART_LOST_MASS] = lost_mass
-        partial[blk, PART_LOST_COUNT] = lost_count
-        partial[blk, PART_NONFINITE] = nonfinite
+        if ti.static(PER_PARTICLE):
+            # atomics in thread order: the sums' rounding varies from run to run (a GPU's threads are many and
+            # a serial sum over the blocks would cost it more than the substep's work); the box was reset by
+            # mark_blocks, and only the rare non-zero terms are added
+            if box_lo[0] < HUGE:
+                for c in ti.static(range(3)):
+                    ti.atomic_min(blk_box[blk, 0][c], box_lo[c])
+                    ti.atomic_max(blk_box[blk, 1][c], box_hi[c])
+            if disp2_max > stat[S_DISP2]:
+                ti.atomic_max(stat[S_DISP2], disp2_max)
+            if speed2_max > stat[S_SPEED2]:
+                ti.atomic_max(stat[S_SPEED2], speed2_max)
+            for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
+                if tool_sum[t, c] != 0.0:
+                    ti.atomic_add(tool_acc[t, c], tool_sum[t, c])
+            if lost_count != 0.0:
+                ti.atomic_add(stat[S_LOST_MASS], lost_mass)
+                ti.atomic_add(stat[S_LOST_COUNT], lost_count)
+            if nonfinite != 0.0:
+                ti.atomic_add(stat[S_NONFINITE], nonfinite)
+        else:
+            blk_box[blk, 0] = box_lo
+            blk_box[blk, 1] = box_hi
+            ti.atomic_max(stat[S_DISP2], disp2_max)
+            ti.atomic_max(stat[S_SPEED2], speed2_max)
+            for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
+                partial[blk, 6 * t + c] = tool_sum[t, c]
+            partial[blk, PART_LOST_MASS] = lost_mass
+            partial[blk, PART_LOST_COUNT] = lost_count
+            partial[blk, PART_NONFINITE] = nonfinite
     # sums in block order (not atomics in thread order): the tool wrench fed back to the machine is
     # bit-for-bit reproducible. One serial task, so the sums stay in registers.
-    if not running:
+    if not running or ti.static(PER_PARTICLE):
         n_blocks = 0
     ti.loop_config(serialize=True)
     for _ in range(1):
@@ -1003,14 +1042,17 @@ def _variant(fn, decorator, **names):
     return decorator(copy)
 
 
-def _substep_kernel(serial: bool):
-    funcs = {name: _variant(globals()[name], ti.func, SERIAL_LOOPS=serial)
-             for name in ("_mark_blocks", "_pair_forces", "_step")}
-    return _variant(_substep, ti.kernel, SERIAL_LOOPS=serial, **funcs)
+def _substep_kernel(serial: bool, per_particle: bool = False):
+    flags = dict(SERIAL_LOOPS=serial, PER_PARTICLE=per_particle)
+    funcs = {name: _variant(globals()[name], ti.func, **flags) for name in ("_mark_blocks", "_pair_forces", "_step")}
+    return _variant(_substep, ti.kernel, **flags, **funcs)
 
 
 substep = _substep_kernel(False)
 substep_serial = _substep_kernel(True)  # every particle loop in the calling thread (CPU)
+# a GPU's layout: one iteration per particle of the listed blocks in step() too, its sums by atomics (the same
+# physics, not the same bits: the order of the sums varies)
+substep_per_particle = _substep_kernel(False, per_particle=True)
 
 
 # ----------------------------------------------------------------------------------------------- neighbour build
@@ -1115,6 +1157,71 @@ def sort_by_bucket(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: 
         key = bucket[i]
         order[counts[key]] = i
         counts[key] += 1
+    sizes[SZ_ACTIVE] = starts[half + live_mask + 1]
+
+
+# A GPU runs a serial loop on one thread: the rebuilds' serial scans and scatters cost it 10-40 ms each at 16,000
+# particles. These variants give the same arrays (the same bits) from parallel loops: sums by chunks, and a scatter
+# by atomics whose order within each segment is then sorted back into the serial loop's.
+SCAN_CHUNK = 256
+
+
+@ti.func
+def _scan(a: ti.template(), lo, n, base):
+    """a[lo..n) <- base + its inclusive prefix sums: each chunk summed by a thread, the chunks' totals carried
+    serially, then each chunk's offset added."""
+    n_chunks = (n - lo + SCAN_CHUNK - 1) // SCAN_CHUNK
+    for c in range(n_chunks):
+        s = 0
+        for k in range(lo + c * SCAN_CHUNK, ti.min(n, lo + (c + 1) * SCAN_CHUNK)):
+            s += a[k]
+            a[k] = s
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        carry = base
+        for c in range(n_chunks):
+            last = ti.min(n, lo + (c + 1) * SCAN_CHUNK) - 1
+            a[last] += carry
+            carry = a[last]
+    for c in range(n_chunks):
+        off = base
+        if c > 0:
+            off = a[lo + c * SCAN_CHUNK - 1]
+        for k in range(lo + c * SCAN_CHUNK, ti.min(n, lo + (c + 1) * SCAN_CHUNK) - 1):
+            a[k] += off
+
+
+@ti.func
+def _sort_segment(keys: ti.template(), first, last):
+    """keys[first..last) in ascending order (insertion sort: a segment holds a few entries)."""
+    for k in range(first + 1, last):
+        v = keys[k]
+        m = k
+        while m > first and keys[m - 1] > v:
+            keys[m] = keys[m - 1]
+            m -= 1
+        keys[m] = v
+
+
+@ti.kernel
+def sort_by_bucket_parallel(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1, starts: I32_1, order: I32_1,
+                            mask: ti.i32, live_mask: ti.i32, sizes: I32_1):
+    """sort_by_bucket from parallel loops (a GPU's): the same starts and order."""
+    half = mask + 1
+    k0 = 0
+    if lo > 0:
+        k0 = half
+    end = half + live_mask + 2
+    for b in range(k0, end):
+        starts[b + 1] = counts[b]
+    _scan(starts, k0 + 1, end + 1, lo)
+    starts[k0] = lo
+    for b in range(k0, end):
+        counts[b] = starts[b]
+    for i in range(lo, n):
+        order[ti.atomic_add(counts[bucket[i]], 1)] = i
+    for b in range(k0, end):
+        _sort_segment(order, starts[b], starts[b + 1])
     sizes[SZ_ACTIVE] = starts[half + live_mask + 1]
 
 
@@ -1436,7 +1543,7 @@ def _fill_found(i, o_i, x_i, r_i, extra, e0, kin: ti.template(), prop: ti.templa
 
 @ti.kernel
 def build_reverse(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1,
-                  rev_pos: I32_1, scratch: ti.i32):
+                  rev_pos: I32_1, scratch: ti.i32, rev_holder: I32_1):
     """Reverse lists of the holders lo..n_act: each particle j gets a segment rev_off[j]..rev_off[j+1] with one slot
     per pair held by another particle; rev_pos[e] is the slot of entry e (slots in entry order; serial:
     deterministic, and cheap next to the neighbour search). A frozen particle is not integrated, so what a live
@@ -1468,6 +1575,41 @@ def build_reverse(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, nbr_off: I32_1, n
     for k in range(n_act - lo):  # the fill advanced each start to the next one's: shift back
         rev_off[n_act - k] = rev_off[n_act - k - 1]
     rev_off[lo] = base
+
+
+@ti.kernel
+def build_reverse_parallel(lo: ti.i32, n_frozen: ti.i32, n_act: ti.i32, nbr_off: I32_1, nbr_j: I32_1,
+                           rev_off: I32_1, rev_pos: I32_1, scratch: ti.i32, rev_holder: I32_1):
+    """build_reverse from parallel loops (a GPU's): the same rev_off and rev_pos. Each particle's count goes to its
+    own rev_off entry, summed to its segment's end; the fill takes slots from the end down in any order, which
+    leaves each entry at its segment's start; each segment's entries are then sorted back into entry order
+    (rev_holder serves as the slot -> entry map: fill_rev_holder rewrites every live slot after this)."""
+    if lo == 0:
+        rev_off[0] = 0
+    base = rev_off[lo]
+    for j in range(lo, n_act + 1):
+        rev_off[j] = 0
+    for i in range(lo, n_act):
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            j = nbr_j[e]
+            if i < n_frozen or j >= n_frozen:
+                ti.atomic_add(rev_off[j], 1)
+    _scan(rev_off, lo, n_act, base)
+    rev_off[n_act] = base
+    if n_act > lo:
+        rev_off[n_act] = rev_off[n_act - 1]
+    for i in range(lo, n_act):
+        for e in range(nbr_off[i], nbr_off[i + 1]):
+            j = nbr_j[e]
+            if i < n_frozen or j >= n_frozen:
+                q = ti.atomic_sub(rev_off[j], 1) - 1
+                rev_holder[q] = e
+            else:
+                rev_pos[e] = scratch
+    for j in range(lo, n_act):
+        _sort_segment(rev_holder, rev_off[j], rev_off[j + 1])
+        for q in range(rev_off[j], rev_off[j + 1]):
+            rev_pos[rev_holder[q]] = q
 
 
 # ----------------------------------------------------------------------------------------------- diagnostics

@@ -141,8 +141,11 @@ CHUNK_MAX = 32  # longest run of substeps in one compute graph (longer advances 
 SERIAL_BELOW = 4096
 
 
-def _substep_kernel(serial: bool):
-    return dem.substep_serial if serial else dem.substep
+PER_PARTICLE_ARCHS = ("cuda",)  # backends whose step loop gives each particle a thread (DemSoil._layout)
+
+
+def _substep_kernel(layout: str):
+    return {"block": dem.substep, "serial": dem.substep_serial, "particle": dem.substep_per_particle}[layout]
 
 
 def _of_this_runtime(cache: dict) -> dict:
@@ -154,14 +157,14 @@ def _of_this_runtime(cache: dict) -> dict:
     return cache
 
 
-def _chunk_graph(count: int, serial: bool):
+def _chunk_graph(count: int, layout: str):
     """Compute graph of `count` substeps (begin_chunk, count x substep, end_chunk), built
     once per Taichi runtime and count; None if the backend cannot build graphs (then the kernels are launched
     directly). Launching an ndarray kernel from Python costs ~20 us per argument, which would dominate small soils;
-    a graph binds the arguments in C++, and one graph per rigid step launches from Python once. serial: the
-    kernels whose particle loops run in the calling thread."""
+    a graph binds the arguments in C++, and one graph per rigid step launches from Python once. layout: the
+    substep kernel's (DemSoil._layout)."""
     _of_this_runtime(_GRAPHS)
-    key = (count, serial)
+    key = (count, layout)
     if key not in _GRAPHS:
         try:
             arg, kind = ti.graph.Arg, ti.graph.ArgKind
@@ -170,7 +173,7 @@ def _chunk_graph(count: int, serial: bool):
             builder = ti.graph.GraphBuilder()
             builder.dispatch(dem.begin_chunk, *(sym[a] for a in _BEGIN_ARGS))
             for _ in range(count):
-                builder.dispatch(_substep_kernel(serial), *(sym[a] for a in _SUBSTEP_ARGS))
+                builder.dispatch(_substep_kernel(layout), *(sym[a] for a in _SUBSTEP_ARGS))
             builder.dispatch(dem.end_chunk, *(sym[a] for a in _END_ARGS))
             _GRAPHS[key] = builder.compile()
         except Exception:  # noqa: BLE001 - any failure here just means direct launches
@@ -191,26 +194,29 @@ _COUNT = ("lo", "n_frozen", "sizes", "kin_out", "prop_out", "cell_out", "starts"
           "live_mask", "keep", "moved", "order", "nbr_off", "kept")
 _FILL = ("lo", "n_frozen", "n_act", "kin", "prop", "cell", "starts", "order", "nbr_off", "nbr_j", "nbr_h",
          "nbr_off_out", "nbr_j_out", "nbr_h_out", "x_ref", "prm", "mask", "live_mask", "kept", "order_inv")
-_REVERSE = ("lo", "n_frozen", "n_act", "nbr_off_out", "nbr_j_out", "rev_off", "rev_pos", "scratch")
+_REVERSE = ("lo", "n_frozen", "n_act", "nbr_off_out", "nbr_j_out", "rev_off", "rev_pos", "scratch", "rev_holder")
 _REV_HOLDER = ("lo", "n_act", "nbr_off_out", "rev_pos", "rev_holder", "scratch")
 _AWAKE = ("n_frozen", "n_act", "block", "kin", "surf_id", "prm", "blk_hot", "blk_box", "nbr_off_out", "nbr_j_out",
           "rev_off", "rev_holder", "tool_gap")
 
 
-def _rebuild_steps(which: str) -> KernelSequence:
+def _rebuild_steps(which: str, parallel: bool = False) -> KernelSequence:
     """sort: bin, sort, gather, count; sort_keep: the same, finding the cells where anything moved (the lists of
-    still neighbourhoods are kept); lists: fill, reverse, blocks. Built once per Taichi runtime."""
+    still neighbourhoods are kept); lists: fill, reverse, blocks. parallel: the sort and the reverse lists from
+    parallel loops (a GPU's; the same arrays). Built once per Taichi runtime."""
     _of_this_runtime(_REBUILDS)
-    if which not in _REBUILDS:
-        steps = {"sort": [(dem.bin_particles, _BIN), (dem.sort_by_bucket, _SORT),
+    if (which, parallel) not in _REBUILDS:
+        sort = dem.sort_by_bucket_parallel if parallel else dem.sort_by_bucket
+        reverse = dem.build_reverse_parallel if parallel else dem.build_reverse
+        steps = {"sort": [(dem.bin_particles, _BIN), (sort, _SORT),
                           (dem.gather_particles, _GATHER), (dem.count_neighbors, _COUNT)],
-                 "sort_keep": [(dem.bin_particles, _BIN), (dem.sort_by_bucket, _SORT),
+                 "sort_keep": [(dem.bin_particles, _BIN), (sort, _SORT),
                                (dem.mark_moved_cells, _MOVED), (dem.gather_particles, _GATHER),
                                (dem.count_neighbors, _COUNT)],
-                 "lists": [(dem.fill_neighbors, _FILL), (dem.build_reverse, _REVERSE),
+                 "lists": [(dem.fill_neighbors, _FILL), (reverse, _REVERSE),
                            (dem.fill_rev_holder, _REV_HOLDER), (dem.mark_awake_blocks, _AWAKE)]}[which]
-        _REBUILDS[which] = KernelSequence(steps)
-    return _REBUILDS[which]
+        _REBUILDS[(which, parallel)] = KernelSequence(steps)
+    return _REBUILDS[(which, parallel)]
 
 
 _REBUILDS: dict = {}
@@ -298,6 +304,9 @@ class DemSoil:
         self._tool_acc = ti.ndarray(ti.f64, (dem.MAX_TOOLS, 6))
         self._sdf = ti.ndarray(dem.vec4f, 1)
         self._serial_cpu = current_arch() in ("x64", "arm64")  # serial loops for small work (CPU only)
+        # the step loop's layout: blocks of particles for a CPU's few threads, one particle per thread on a GPU
+        # (the same physics up to the order of the sums; the tests run it on the CPU too)
+        self.per_particle = current_arch() in PER_PARTICLE_ARCHS
         self._active_slots = 0
         self._tools_in = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))  # the host's tool rows, uploaded
         self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)  # written by end_chunk, read once per run of substeps
@@ -690,7 +699,7 @@ class DemSoil:
                 dem.copy_i32(frozen_slots, self._rev_holder, rev_holder)
             self._nbr_j2, self._nbr_h2, self._rev_pos, self._rev_holder = nbr_j2, nbr_h2, rev_pos, rev_holder
             self._pair_out = ti.ndarray(dem.vec3f, (grown + 1, 2))
-        _rebuild_steps("lists").run(self._lists_args(lo, n_act))
+        _rebuild_steps("lists", self.per_particle).run(self._lists_args(lo, n_act))
         self._nbr_off, self._nbr_off2 = self._nbr_off2, self._nbr_off
         self._nbr_j, self._nbr_j2 = self._nbr_j2, self._nbr_j
         self._nbr_h, self._nbr_h2 = self._nbr_h2, self._nbr_h
@@ -733,14 +742,14 @@ class DemSoil:
         self.n_frozen = nf
         args = self._sort_args(0, keep=keep)
         args.update(use_frozen=int(nf > 0), was_frozen=was_frozen)
-        _rebuild_steps("sort_keep" if keep else "sort").run(args)
+        _rebuild_steps("sort_keep" if keep else "sort", self.per_particle).run(args)
         self._swap_particles()
         self._list_neighbors(0)
         if nf:
             self._mirror_frozen()
 
     def _rebuild_live(self, keep: bool) -> None:
-        _rebuild_steps("sort_keep" if keep else "sort").run(self._sort_args(self.n_frozen, keep))
+        _rebuild_steps("sort_keep" if keep else "sort", self.per_particle).run(self._sort_args(self.n_frozen, keep))
         self._swap_particles()
         self._list_neighbors(self.n_frozen)
 
@@ -1177,14 +1186,14 @@ class DemSoil:
         while True:
             k = min(left, CHUNK_MAX)
             args["todo"] = k
-            serial = self._serial_cpu and self._active_slots < SERIAL_BELOW
-            graph = _chunk_graph(k, serial)
+            layout = self._layout()
+            graph = _chunk_graph(k, layout)
             if graph is not None:
                 graph.run(args)
             else:
                 dem.begin_chunk(*(args[a] for a in _BEGIN_ARGS))
                 for _ in range(k):
-                    _substep_kernel(serial)(*(args[a] for a in _SUBSTEP_ARGS))
+                    _substep_kernel(layout)(*(args[a] for a in _SUBSTEP_ARGS))
                 dem.end_chunk(*(args[a] for a in _END_ARGS))
             args.update(first=0, upload=0)
             report = self._report.to_numpy() if self._report_view is None else self._report_view.copy()
@@ -1204,23 +1213,31 @@ class DemSoil:
         kernels are compiled without a launch: those a run first launches after its setup (the frozen partition's,
         the observers') no longer compile on its clock. A big sleeping bed is partitioned here, as the first advance
         would do it (the tools are where the first step finds them: the same bits)."""
-        precompile(*(getattr(dem, name) for name in WARM_KERNELS))
+        parallel = ("sort_by_bucket_parallel", "build_reverse_parallel") if self.per_particle else ()
+        precompile(*(getattr(dem, name) for name in WARM_KERNELS + parallel))
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
         for which in ("sort", "sort_keep", "lists"):
-            _rebuild_steps(which)  # (the rebuilds' graphs: a live rebuild's is first needed during the run)
+            _rebuild_steps(which, self.per_particle)  # (the rebuilds' graphs: a live one's is first needed in the run)
         if self._partition_stale():
             self._rebuild()
         n_sub = max(1, math.ceil(duration / self.dt - 1e-9))
         k = min(n_sub, CHUNK_MAX)
-        serial = self._serial_cpu and self._active_slots < SERIAL_BELOW
+        layout = self._layout()
         args = self._kernel_args(duration / n_sub, 0.0)  # (todo = 0, first = 0: the tool rows are not touched)
-        graph = _chunk_graph(k, serial)
+        graph = _chunk_graph(k, layout)
         if graph is not None:
             graph.run(args)
         else:
             dem.begin_chunk(*(args[a] for a in _BEGIN_ARGS))
-            _substep_kernel(serial)(*(args[a] for a in _SUBSTEP_ARGS))
+            _substep_kernel(layout)(*(args[a] for a in _SUBSTEP_ARGS))
             dem.end_chunk(*(args[a] for a in _END_ARGS))
+
+    def _layout(self) -> str:
+        """The substep kernel for the next run of substeps: per particle on a GPU; on a CPU threaded, or serial
+        while the last substep listed few particle slots (SERIAL_BELOW)."""
+        if self.per_particle:
+            return "particle"
+        return "serial" if self._serial_cpu and self._active_slots < SERIAL_BELOW else "block"
 
     def advance(self, duration: float) -> np.ndarray:
         """Advance by `duration` in n = ceil(duration / dt) equal substeps, tools moving kinematically.
