@@ -716,6 +716,11 @@ class BridgeConfig(_Model):
                                 "(/clock published for use_sim_time stacks).")
     after_motion: Bool = Field(False, description="Run the scene's motion first, then take commands from ROS "
                                                   "(otherwise the motion is set aside).")
+    command_timeout: Optional[_num("s", gt=0, le=60)] = Field(
+        0.5, description="A speed command (tracks/cmd_vel, a JointCmd velocity target) lasts this long in simulated "
+                         "time: with no new one by then the tracks stop and the joint's target speed becomes 0, so a "
+                         "controller that dies does not leave the machine driving (ros_control's cmd_vel_timeout); "
+                         "position targets do not expire; null = never.")
 
 
 class Scene(_Model):

@@ -189,13 +189,21 @@ def test_ros_tcp_through_the_real_ros1_endpoint(ros, endpoint):
         assert len(ticks) > 50 and all(b > a for a, b in zip(ticks, ticks[1:]))
         # com3_msgs/JointCmd through the endpoint (it deserialises it with the genpy class)
         _wait_subscribed(core, "/zx120/front_cmd")
+        arm0 = joint_rows(states, "arm_joint")[-1][1]
         rostopic_pub("/zx120/front_cmd", "com3_msgs/JointCmd",
                      "{joint_name: [arm_joint], control_type: 1, velocity: [-0.3]}", env)
-        wait_for(lambda: (a := joint_rows(states, "arm_joint")) and a[-1][1] < a[0][1] - 0.2, 60, "the arm opening")
-        # emg_stop through the endpoint holds it
+        wait_for(lambda: joint_rows(states, "arm_joint")[-1][1] < arm0 - 0.05, 60, "the arm opening")
+        # one speed command lasts bridge.command_timeout (0.5 s of simulated time): then the arm stops
+        t_open = next(t for t, q in joint_rows(states, "arm_joint") if q < arm0 - 0.05)
+        wait_for(lambda: _boom(states)[-1][0] > t_open + 2.0, 60, "2 s after the arm opened")
+        stopped = [q for t, q in joint_rows(states, "arm_joint") if t >= t_open + 1.0]
+        assert max(stopped) - min(stopped) < 1e-3 and arm0 - stopped[-1] < 0.3  # 2 s at 0.3 rad/s would be 0.6
+        # emg_stop through the endpoint holds it: a speed command under it is ignored
         rostopic_pub("/zx120/emg_stop", "std_msgs/Bool", "data: true", env)
         t_held = _boom(states)[-1][0]
         arm_held = joint_rows(states, "arm_joint")[-1][1]
+        rostopic_pub("/zx120/front_cmd", "com3_msgs/JointCmd",
+                     "{joint_name: [arm_joint], control_type: 1, velocity: [-0.3]}", env)
         wait_for(lambda: _boom(states)[-1][0] > t_held + 1.0, 30, "1 s under emg_stop")
         assert all(abs(q - arm_held) < 1e-3 for t, q in joint_rows(states, "arm_joint") if t >= t_held)
     finally:
@@ -203,6 +211,7 @@ def test_ros_tcp_through_the_real_ros1_endpoint(ros, endpoint):
         clock.close()
         text = _close_run(proc, out, err)
     assert "ROS-TCP-Endpoint v0.7.0 at 127.0.0.1" in text and "ROS1: ROS 1 serialisation" in text
+    assert "arm_joint's velocity target: the joint stops (bridge.command_timeout" in text
 
 
 def test_joint_cmd_md5_matches_genpys_class(ros):

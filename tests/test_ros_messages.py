@@ -325,11 +325,59 @@ def test_cmd_vel_drives_the_tracks_of_a_free_base():
         ctl.handle(topic, T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0), angular=V(x=0, y=0, z=0.2)))
         c = ctl.control(sim, sim.t + sim.model.dt)
         assert c.machines["zx120"].track_speeds == pytest.approx((0.5 - 0.1 * gauge, 0.5 + 0.1 * gauge))
-        ctl.handle(topic, T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0), angular=V(x=0, y=0, z=0)))
         x0 = sim.machine.base_pose()[0][0]
-        while sim.t < 2.0:
+        while sim.t < 2.0:  # a teleop's stream at 10 Hz (each command lasts bridge.command_timeout, 0.5 s)
+            if sim.step_count % 50 == 0:
+                ctl.handle(topic, T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0), angular=V(x=0, y=0, z=0)))
             sim.step(ctl.control(sim, sim.t + sim.model.dt))
-        assert sim.machine.base_pose()[0][0] > x0 + 0.3
+        assert sim.machine.base_pose()[0][0] > x0 + 0.6
+    finally:
+        sim.close()
+
+
+def test_speed_commands_expire_so_a_dead_controller_does_not_leave_the_machine_driving():
+    """A cmd_vel and a joint velocity target each sent once: they act for bridge.command_timeout (0.5 s of simulated
+    time), then the tracks stop and the joint's target speed becomes 0 (said once each); the machine comes to rest
+    and stays there, also after an emergency stop is released. A position target does not expire."""
+    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    try:
+        log = _Log()
+        ctl = BridgeController(log, command_timeout=0.5)
+        ctl.bind(sim.model)
+        topics = _topics(sim)
+        T = typestore(2).types
+        V = T["geometry_msgs/msg/Vector3"]
+        arm = sim.machine.joint_names.index("arm_joint")
+        ctl.handle(topics["tracks/cmd_vel"], T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0),
+                                                                            angular=V(x=0, y=0, z=0)))
+        ctl.handle(topics["front_cmd"], _msg("com3_msgs/msg/JointCmd", joint_name=["arm_joint"], control_type=1,
+                                             velocity=[0.2]))
+        ctl.handle(topics["boom/cmd"], _msg("std_msgs/msg/Float64", data=-0.3))
+        expired_at, x, q_arm = None, [], []
+        while sim.t < 2.5:
+            c = ctl.control(sim, sim.t + sim.model.dt)
+            mc = c.machines.get("zx120")
+            if mc is not None and mc.track_speeds == (0.0, 0.0):
+                assert expired_at is None and mc.qd_target == {"arm_joint": 0.0}  # both at once, once
+                expired_at = c.t
+            if sim.t == pytest.approx(1.5):
+                ctl.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=True))
+            if sim.t == pytest.approx(1.7):
+                ctl.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=False))
+            sim.step(c)
+            x.append(sim.machine.base_pose()[0][0])
+            q_arm.append(sim.machine.joint_states()[0][arm])
+        assert expired_at == pytest.approx(0.5 + 0.002, abs=2.5e-3)
+        x, q_arm = np.array(x), np.array(q_arm)
+        t = np.arange(1, len(x) + 1) * sim.model.dt
+        assert x[t <= 0.5][-1] - x[0] > 0.1 and q_arm[t <= 0.5][-1] - q_arm[0] > 0.05  # they moved ...
+        rest = t >= 1.2
+        assert np.ptp(x[rest]) < 0.01 and np.ptp(q_arm[rest]) < 0.005               # ... then stood still
+        assert sum("no new speed command" in line for line in log.lines) == 2
+        assert any("tracks/cmd_vel: the tracks stop" in line for line in log.lines)
+        assert any("arm_joint's velocity target: the joint stops" in line for line in log.lines)
+        boom = sim.machine.joint_names.index("boom_joint")
+        assert sim.machine.joint_states()[0][boom] == pytest.approx(-0.3, abs=0.02)    # the position target held
     finally:
         sim.close()
 

@@ -31,7 +31,8 @@ class RosBridge(ThreadedObserver):
         self._said: set = set()
         self._said_lock = threading.Lock()
         self._sim = None
-        self.controller = BridgeController(self.log, after_motion=bool(config.after_motion))
+        self.controller = BridgeController(self.log, after_motion=bool(config.after_motion),
+                                           command_timeout=config.command_timeout)
         if transport is None:
             transport = make_transport(config, self.log)
         self.transport = transport

@@ -3,6 +3,8 @@
 Messages arrive on the network thread (`handle`), are checked, and wait in an inbox stamped with the simulated time
 they arrived at; `control(sim, t)` (simulation thread) applies those whose dead time (the machine's
 `command_latency`) has passed, latest wins per joint. Nothing arrived yet: the machines hold their initial pose.
+A speed command (track speeds, a joint's velocity target) expires `command_timeout` simulated seconds after it
+acted unless a new one came: the tracks stop, the joint's target speed becomes 0.
 A message a user can get wrong (NaN, an unknown joint, arrays of the wrong length, effort mode) is logged once per
 topic and kind of mistake and ignored; it never ends the run.
 """
@@ -18,9 +20,11 @@ from .topics import Topic
 class BridgeController:
     source = "ros"
 
-    def __init__(self, log, *, after_motion: bool = False):
+    def __init__(self, log, *, after_motion: bool = False, command_timeout: float | None = 0.5):
         self._log = log                  # log(key, text): says `text` once per key
         self.after_motion = after_motion
+        self.command_timeout = command_timeout
+        self._speeds: dict[tuple[str, str | None], float] = {}  # (machine, joint; None: tracks) -> when it acted
         self._lock = threading.Lock()
         self._pending: list[tuple[float, str, MachineControl]] = []
         self.now = 0.0                   # simulated time the next arriving command is stamped with
@@ -113,21 +117,47 @@ class BridgeController:
         if self._script is not None and t <= self.motion_end + 1e-12:
             return self._script.control(sim, t)
         with self._lock:
-            if not self._pending:
-                return Control({}, t, self.source)
             due = [p for p in self._pending if p[0] <= t + 1e-12]
-            self._pending = [p for p in self._pending if p[0] > t + 1e-12]
+            if due:
+                self._pending = [p for p in self._pending if p[0] > t + 1e-12]
         merged: dict[str, MachineControl] = {}
         for _, name, mc in due:     # in arrival order: the latest command of a joint wins
             out = merged.setdefault(name, MachineControl())
             for j, v in mc.q_target.items():
                 out.qd_target.pop(j, None)
                 out.q_target[j] = v
+                self._speeds.pop((name, j), None)
             for j, v in mc.qd_target.items():
                 out.q_target.pop(j, None)
                 out.qd_target[j] = v
+                self._moving((name, j), v != 0.0, t)
             if mc.track_speeds is not None:
                 out.track_speeds = mc.track_speeds
+                self._moving((name, None), any(v != 0.0 for v in mc.track_speeds), t)
             if mc.hold is not None:
                 out.hold = mc.hold
+        if self.command_timeout is not None:
+            self._expire(merged, t)
         return Control(merged, t, self.source)
+
+    def _moving(self, key: tuple, moving: bool, t: float) -> None:
+        if moving:
+            self._speeds[key] = t
+        else:
+            self._speeds.pop(key, None)  # (a command to stop has nothing to expire)
+
+    def _expire(self, merged: dict[str, MachineControl], t: float) -> None:
+        """Speed commands that acted more than command_timeout ago with none after them: stop."""
+        for (name, joint), since in list(self._speeds.items()):
+            if t - since <= self.command_timeout + 1e-9:
+                continue
+            del self._speeds[(name, joint)]
+            out = merged.setdefault(name, MachineControl())
+            if joint is None:
+                out.track_speeds = (0.0, 0.0)
+                what = "tracks/cmd_vel: the tracks stop"
+            else:
+                out.qd_target[joint] = 0.0
+                what = f"{joint}'s velocity target: the joint stops"
+            self._log(("timeout", name, joint), f"{name}: no new speed command {self.command_timeout:g} s (simulated) "
+                                                f"after the last, {what} (bridge.command_timeout; said once)")
