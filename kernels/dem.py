@@ -1168,26 +1168,27 @@ SCAN_CHUNK = 256
 
 @ti.func
 def _scan(a: ti.template(), lo, n, base):
-    """a[lo..n) <- base + its inclusive prefix sums: each chunk summed by a thread, the chunks' totals carried
-    serially, then each chunk's offset added."""
-    n_chunks = (n - lo + SCAN_CHUNK - 1) // SCAN_CHUNK
+    """a[lo..n) <- base + its inclusive prefix sums: each chunk (about sqrt(n) entries, at least SCAN_CHUNK) summed
+    by a thread, the chunks' totals carried serially, then each chunk's offset added."""
+    size = ti.max(SCAN_CHUNK, ti.cast(ti.sqrt(ti.cast(ti.max(n - lo, 0), ti.f64)), ti.i32) + 1)
+    n_chunks = (n - lo + size - 1) // size
     for c in range(n_chunks):
         s = 0
-        for k in range(lo + c * SCAN_CHUNK, ti.min(n, lo + (c + 1) * SCAN_CHUNK)):
+        for k in range(lo + c * size, ti.min(n, lo + (c + 1) * size)):
             s += a[k]
             a[k] = s
     ti.loop_config(serialize=True)
     for _ in range(1):
         carry = base
         for c in range(n_chunks):
-            last = ti.min(n, lo + (c + 1) * SCAN_CHUNK) - 1
+            last = ti.min(n, lo + (c + 1) * size) - 1
             a[last] += carry
             carry = a[last]
     for c in range(n_chunks):
         off = base
         if c > 0:
-            off = a[lo + c * SCAN_CHUNK - 1]
-        for k in range(lo + c * SCAN_CHUNK, ti.min(n, lo + (c + 1) * SCAN_CHUNK) - 1):
+            off = a[lo + c * size - 1]
+        for k in range(lo + c * size, ti.min(n, lo + (c + 1) * size) - 1):
             a[k] += off
 
 
@@ -1218,10 +1219,25 @@ def sort_by_bucket_parallel(lo: ti.i32, n: ti.i32, bucket: I32_1, counts: I32_1,
     starts[k0] = lo
     for b in range(k0, end):
         counts[b] = starts[b]
+    gone = half + live_mask + 1  # the inactive particles' bucket: it may hold many, so not sorted by a thread
     for i in range(lo, n):
-        order[ti.atomic_add(counts[bucket[i]], 1)] = i
-    for b in range(k0, end):
+        if bucket[i] != gone:
+            order[ti.atomic_add(counts[bucket[i]], 1)] = i
+    for b in range(k0, gone):
         _sort_segment(order, starts[b], starts[b + 1])
+    # the inactive ones in index order, from a scan of a 0/1 mark (bucket is free once the scatter read it)
+    for i in range(lo, n):
+        bucket[i] = ti.cast(bucket[i] == gone, ti.i32)
+    _scan(bucket, lo, n, 0)
+    for i in range(lo, n):
+        before = 0
+        if i > lo:
+            before = bucket[i - 1]
+        if bucket[i] != before:
+            order[starts[gone] + before] = i
+    counts[gone] = starts[gone]  # (where the serial scatter leaves its cursor: the bucket's end)
+    if n > lo:
+        counts[gone] += bucket[n - 1]
     sizes[SZ_ACTIVE] = starts[half + live_mask + 1]
 
 

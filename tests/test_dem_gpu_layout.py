@@ -54,3 +54,86 @@ def test_the_gpu_layout_moves_every_particle_as_the_cpu_layout(monkeypatch):
     stat_a, stat_b = a["stat"], b["stat"]
     for s in (dem.S_SPEED2, dem.S_LOST_MASS, dem.S_LOST_COUNT, dem.S_NONFINITE):
         assert stat_a[s] == stat_b[s], s
+
+
+def test_a_bed_settled_in_the_gpu_layout_is_the_cpu_layouts_bed(monkeypatch):
+    """Pouring and settling a bed (no cache) trims the grains above the pit (they become inactive but stay in the
+    arrays, sorted to the end at every rebuild) and rebuilds its lists many times with every grain awake: the GPU
+    layout's parallel sort puts the inactive grains in the serial order too, and the settled bed is the same, bit
+    for bit."""
+    from opera_taichi import dem_soil
+    from opera_taichi.backend import init_taichi
+    from opera_taichi.soil import bulk_to_micro, resolve_soil
+
+    init_taichi("cpu")
+    micro = bulk_to_micro(resolve_soil("sand", {"radius": 0.02, "youngs_modulus": 2e6}), bed_depth=0.1)
+    trim, trimmed = dem_soil.DemSoil._trim_to_beds, []
+
+    def counting_trim(soil):
+        before = soil.n_act
+        trim(soil)
+        trimmed.append(before - soil.n_act)
+
+    monkeypatch.setattr(dem_soil.DemSoil, "_trim_to_beds", counting_trim)
+    beds = []
+    for per_particle in (False, True):
+        monkeypatch.setattr(dem_soil, "PER_PARTICLE_ARCHS", ("cuda", "x64", "arm64") if per_particle else ())
+        soil = dem_soil.DemSoil(micro, domain_min=(-0.25, -0.25, -0.2), domain_max=(0.25, 0.25, 0.4),
+                                beds=[((-0.12, -0.12, -0.1), (0.12, 0.12, 0.0))], seed=5, use_cache=False)
+        assert soil.per_particle is per_particle
+        beds.append(soil)
+    a, b = (soil.get_state() for soil in beds)
+    assert trimmed[0] == trimmed[1] > 20  # grains were trimmed, then carried inactive through the rebuilds ...
+    assert beds[0].rebuilds == beds[1].rebuilds > 10  # ... of the settling
+    for name in ("kin", "flags", "prop", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_off", "rev_pos"):
+        assert np.array_equal(a[name], b[name]), name
+
+
+def test_the_parallel_sort_and_reverse_lists_give_the_serial_loops_arrays():
+    """The rebuild's counting sort and reverse lists from parallel loops against the serial ones, on random cell
+    buckets (inactive grains among them, a live part behind a frozen prefix, chunk edges of the scans) and random
+    neighbour lists: the same starts, order, cursors, offsets and slots, entry for entry."""
+    import taichi as ti
+
+    from kernels import dem
+    from opera_taichi.backend import init_taichi
+
+    init_taichi("cpu")
+    rng = np.random.default_rng(0)
+
+    def nd(values):
+        out = ti.ndarray(ti.i32, max(len(values), 1))
+        out.from_numpy(np.resize(np.asarray(values, np.int32), max(len(values), 1)))
+        return out
+
+    for lo, n, half, live, gone_share in ((0, 5000, 1024, 511, 0.1), (700, 9000, 2048, 1023, 0.3),
+                                          (0, 3, 16, 7, 0.0), (40, 40, 8, 7, 0.0), (0, 600, 64, 63, 1.0),
+                                          (0, dem.SCAN_CHUNK + 1, 32, 31, 0.5)):
+        end = half + live + 2
+        bucket = rng.integers(half if lo > 0 else 0, end - 1, n).astype(np.int32)
+        bucket[rng.random(n) < gone_share] = end - 1  # the inactive grains' bucket
+        counts = np.zeros(end + 1, np.int32)
+        np.add.at(counts, bucket[lo:], 1)
+        runs = []
+        for kernel in (dem.sort_by_bucket, dem.sort_by_bucket_parallel):
+            arrays = [nd(bucket), nd(counts), nd(np.full(end + 2, -7)), nd(np.full(n, -1)), nd([0, 0])]
+            kernel(lo, n, arrays[0], arrays[1], arrays[2], arrays[3], half - 1, live, arrays[4])
+            runs.append([a.to_numpy() for a in arrays[1:]])
+        for name, serial, parallel in zip(("counts", "starts", "order", "sizes"), *runs):
+            assert np.array_equal(serial, parallel), (lo, n, name)
+
+    for lo, n_act in ((0, 3000), (400, 3000), (0, 1), (0, 0), (5, 5)):
+        degree = rng.integers(0, 9, n_act)
+        offsets = np.zeros(n_act + 1, np.int32)
+        offsets[1:] = np.cumsum(degree)
+        entries = int(offsets[-1])
+        partners = rng.integers(0, max(n_act, 1), entries).astype(np.int32)
+        runs = []
+        for kernel in (dem.build_reverse, dem.build_reverse_parallel):
+            rev_off = np.full(n_act + 2, 5, np.int32)
+            rev_off[:lo + 1] = 37  # the frozen prefix's segments end at 37
+            arrays = [nd(offsets), nd(partners), nd(rev_off), nd(np.full(entries, -3)), nd(np.zeros(entries + 1))]
+            kernel(lo, lo, n_act, arrays[0], arrays[1], arrays[2], arrays[3], entries, arrays[4])
+            runs.append((arrays[2].to_numpy()[:n_act + 1], arrays[3].to_numpy()[:entries]))
+        for name, serial, parallel in zip(("rev_off", "rev_pos"), *runs):
+            assert np.array_equal(serial, parallel), (lo, n_act, name)
