@@ -1213,8 +1213,10 @@ class DemSoil:
         kernels are compiled without a launch: those a run first launches after its setup (the frozen partition's,
         the observers') no longer compile on its clock. A big sleeping bed is partitioned here, as the first advance
         would do it (the tools are where the first step finds them: the same bits)."""
-        parallel = ("sort_by_bucket_parallel", "build_reverse_parallel") if self.per_particle else ()
-        precompile(*(getattr(dem, name) for name in WARM_KERNELS + parallel))
+        names = WARM_KERNELS
+        if self.per_particle:  # (the GPU layout's sort and reverse lists instead of the serial ones)
+            names = tuple(f"{name}_parallel" if name in ("sort_by_bucket", "build_reverse") else name for name in names)
+        precompile(*(getattr(dem, name) for name in names))
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
         for which in ("sort", "sort_keep", "lists"):
             _rebuild_steps(which, self.per_particle)  # (the rebuilds' graphs: a live one's is first needed in the run)
