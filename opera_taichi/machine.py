@@ -161,8 +161,9 @@ class BulletMachine:
     def command(self, q_target=None, qd_target=None, track_speeds=None, hold=None) -> None:
         """Apply one step's commands: position targets (rad, clipped to the joint limits, a warning once per joint
         when clipped), velocity targets (rad/s, capped by the actuators), track speeds (m/s) and the emergency stop
-        (hold: True latches the current pose as the target of every joint until released with False). A target that is
-        no finite number is refused before anything is applied (it would turn the machine's state into NaN)."""
+        (hold: True latches the current pose as the target of every joint and stops the tracks until released with
+        False; a release resumes no speed given before the hold). A target that is no finite number is refused before
+        anything is applied (it would turn the machine's state into NaN)."""
         for kind, unit, values in (("target", "rad", q_target), ("speed target", "rad/s", qd_target)):
             for name, value in (values or {}).items():
                 self._joint(name)
@@ -175,6 +176,7 @@ class BulletMachine:
             if self._hold:
                 self._targets = self._q.copy()
                 self._velocity_mode[:] = False
+                self._wheel_speed = (0.0, 0.0)
         for name, value in (q_target or {}).items():
             i = self._joint(name)
             if self._hold:

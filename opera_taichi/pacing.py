@@ -54,11 +54,9 @@ class RealTimePacer(Observer):
             self._slow_windows = self._slow_windows + 1 if rtf < SLOW else 0
             self._window = (sim.t, now)
             if self._slow_windows >= 2 and not self.said:
-                self.said = True
-                if not self.quiet:
-                    print(f"warning: --pace realtime: the simulation cannot keep up with the wall clock here (real-time "
-                          f"factor {rtf:.2f}); it runs as fast as it can, and /clock runs slower than real time",
-                          file=sys.stderr)
+                self.said = True  # (said through the simulation: the manifest's run_warnings keep it)
+                sim._warn(f"--pace realtime: the simulation cannot keep up with the wall clock here (real-time "
+                          f"factor {rtf:.2f}); it runs as fast as it can, and /clock runs slower than real time")
 
     def close(self, sim, status, message) -> None:
         if self.said and self._first is not None and not self.quiet:

@@ -872,7 +872,14 @@ def _message_for(error: dict) -> tuple[list[str], str]:
             return parts, ctx["message"]
         return parts, f"expected {ctx['expected']}, got {ctx['got']}{ctx['hint']}"
     if kind == "missing":
-        return parts, "required key is missing"
+        parent = _strip(_walk_loc(error["loc"][:-1])[1])
+        field = parent.model_fields.get(parts[-1]) if _is_model(parent) and parts else None
+        rule = next((m.func for m in getattr(field, "metadata", ()) if isinstance(getattr(m, "func", None), _ChoiceRule)),
+                    None)
+        what = f" ({' | '.join(rule.choices)})" if rule is not None else ""
+        if parts == ["bridge", "kind"]:  # (a bridge key set alone, e.g. --set bridge.command_timeout=1)
+            what += "; or run with --ros1 or --ros-tcp HOST:PORT"
+        return parts, f"required key is missing{what}"
     if kind == "extra_forbidden":
         parent_parts, parent = _walk_loc(error["loc"][:-1])
         allowed = _allowed_keys(parent) or []

@@ -38,6 +38,8 @@ CASES = [
     ("negative", "sim: {duration: -1}\n", [], ["sim.duration", "> 0"]),
     ("too_large_dt", "sim: {dt: 0.1}\n", [], ["sim.dt", "<= 0.01"]),
     ("float_seed", "sim: {seed: 1.5}\n", [], ["sim.seed", "integer"]),
+    ("bridge_without_kind", "bridge: {command_timeout: 1.0}\n", [],
+     ["bridge.kind", "required key is missing (ros1 | ros_tcp); or run with --ros1 or --ros-tcp HOST:PORT"]),
     ("soil_dt_above_dt", "sim: {dt: 0.001, soil_dt: 0.002}\n", [], ["sim.soil_dt"]),
     ("arch", "sim: {arch: gpu}\n", [], ["sim.arch", "cpu, cuda, auto"]),
     ("xyz_length", MACHINE.replace("}", ", base_pose: {xyz: [1, 2]}}"), [], ["machine.base_pose.xyz", "3"]),

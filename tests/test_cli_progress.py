@@ -61,3 +61,33 @@ def test_setup_phases_show_and_a_run_ends_at_100_percent():
     text = stream.getvalue()
     assert "settling the soil bed" in text and "2.00/2.00 s simulated" in text
     assert "100%" in text and "1.00/1.00 s simulated" in text
+
+
+def test_a_run_that_cannot_keep_the_pace_says_so_once_and_keeps_it_in_its_warnings(monkeypatch):
+    """--pace realtime on a run at half real time (a wall clock made to run twice as fast as the simulated one): two
+    slow 2-second windows in a row, then one warning through the simulation, so the manifest's run_warnings keep it;
+    a run that keeps the pace says nothing."""
+    from opera_taichi import pacing
+
+    for wall_per_sim, said in ((2.0, 1), (1.0, 0)):
+        clock = [0.0]
+        monkeypatch.setattr(pacing.time, "perf_counter", lambda: clock[0])
+        monkeypatch.setattr(pacing.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+
+        class Sim:
+            t, step_count, warnings = 0.0, 0, []
+
+            def _warn(self, text):
+                self.warnings.append(text)
+
+        sim = Sim()
+        pacer = pacing.RealTimePacer(quiet=True)
+        pacer.start(sim, None)
+        for k in range(1, 1001):  # 10 s of simulated time in 10 ms steps
+            sim.t, sim.step_count = 0.01 * k, k
+            clock[0] += 0.01 * wall_per_sim
+            pacer.sample(sim)
+        assert len(sim.warnings) == said
+        if said:
+            assert "--pace realtime: the simulation cannot keep up" in sim.warnings[0]
+            assert "real-time factor 0.50" in sim.warnings[0]

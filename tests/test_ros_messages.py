@@ -382,6 +382,34 @@ def test_speed_commands_expire_so_a_dead_controller_does_not_leave_the_machine_d
         sim.close()
 
 
+def test_a_released_emergency_stop_resumes_no_drive_given_before_it():
+    """A cmd_vel, then the emergency stop 0.25 s later and its release 1 s after that: the machine stops under the
+    hold and stays still after the release (the speed it had been given is gone, and expired under the hold),
+    until a new cmd_vel drives it again."""
+    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    try:
+        ctl = BridgeController(_Log(), command_timeout=0.5)
+        ctl.bind(sim.model)
+        topics = _topics(sim)
+        T = typestore(2).types
+        V = T["geometry_msgs/msg/Vector3"]
+        drive = T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0), angular=V(x=0, y=0, z=0))
+        events = {0.0: ("tracks/cmd_vel", drive), 0.25: ("emg_stop", _msg("std_msgs/msg/Bool", data=True)),
+                  1.25: ("emg_stop", _msg("std_msgs/msg/Bool", data=False)), 2.5: ("tracks/cmd_vel", drive)}
+        x = {}
+        while sim.t < 3.0:
+            for at, (key, msg) in events.items():
+                if abs(sim.t - at) < 0.5 * sim.model.dt:
+                    ctl.handle(topics[key], msg)
+            sim.step(ctl.control(sim, sim.t + sim.model.dt))
+            x[round(sim.t, 3)] = sim.machine.base_pose()[0][0]
+        assert x[0.25] - x[0.002] > 0.02                  # it drove ...
+        assert abs(x[2.5] - x[1.0]) < 0.005               # ... stood under the hold and after its release ...
+        assert x[3.0] - x[2.5] > 0.05                     # ... and a new command drives it again
+    finally:
+        sim.close()
+
+
 def test_mistakes_arriving_on_several_threads_at_once_are_said_once_each_on_its_own_line(capsys):
     """rospy delivers each publisher's messages on its own thread: the same mistake from several publishers at the
     same moment is still one line, and different mistakes at the same moment never share a line."""
