@@ -52,7 +52,9 @@ pair get exactly opposite forces: linear momentum is conserved to round-off.
 
 A GPU's layout (substep_per_particle, sort_by_bucket_parallel, build_reverse_parallel; DemSoil.per_particle) gives
 the step loop one particle per iteration and the rebuilds parallel scans: the same particles, lists and slots, but
-the tool wrenches summed by atomics in thread order (the same physics, not the same bits from run to run).
+the tool wrenches and the lost mass summed by atomics in thread order. Each particle's term is first rounded to a
+multiple of a power of two (WRENCH_QUANTUM, MASS_QUANTUM), so every partial sum is exact and the order does not
+matter: the same bits from run to run and for any thread count (not the bits of the CPU's block sums).
 """
 import types
 
@@ -74,6 +76,10 @@ CALM_SHIFT = 8
 CALM_MAX = (1 << 22) - 1
 SURF_ID_WIDTH = WALL_SLOTS + 1
 BLOCK = 64  # particles per reduction block: sums per block, then added in block order
+# the GPU layout's atomic sums: f64 sums of multiples of 2^-k are exact (so independent of the order) while they stay
+# under 2^53 quanta: 8.6e9 N (N m) summed over one advance's substeps, 8.4e6 kg lost over a run
+WRENCH_QUANTUM = 2.0 ** -20   # N, N m: 1e-5 of a 1 cm grain's weight (0.1 N)
+MASS_QUANTUM = 2.0 ** -30     # kg
 # The step kernel's blocks. Taichi 1.7's CPU thread pool hands out a parallel loop in tasks of 512 iterations
 # whatever the loop's block_dim (measured: with 560 iterations one thread ran 0-511, the other 512-559), so the step
 # loop gives each block STEP_SPREAD iterations, all but one empty: a task is then 32 blocks. Blocks are sized for
@@ -522,6 +528,12 @@ def sample_sdf(sdf: ti.template(), tools: ti.template(), t, p_local):
 
 
 @ti.func
+def _on_grid(x, quantum):
+    """x rounded to a multiple of quantum (a power of two: both steps are exact)."""
+    return ti.floor(x / quantum + 0.5) * quantum
+
+
+@ti.func
 def _rotation_from_vector(phi):
     """Rotation matrix of the rotation vector phi (Rodrigues)."""
     angle = phi.norm()
@@ -942,9 +954,9 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
             else:  # (inactive: left the domain; a rebuild follows)
                 blk_hot[blk] = 1
         if ti.static(PER_PARTICLE):
-            # atomics in thread order: the sums' rounding varies from run to run (a GPU's threads are many and
-            # a serial sum over the blocks would cost it more than the substep's work); the box was reset by
-            # mark_blocks, and only the rare non-zero terms are added
+            # atomics in thread order (a GPU's threads are many and a serial sum over the blocks would cost it more
+            # than the substep's work), of terms on a grid of WRENCH_QUANTUM / MASS_QUANTUM so that the sums are
+            # exact whatever the order; the box was reset by mark_blocks, and only the rare non-zero terms are added
             if box_lo[0] < HUGE:
                 for c in ti.static(range(3)):
                     ti.atomic_min(blk_box[blk, 0][c], box_lo[c])
@@ -955,9 +967,9 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                 ti.atomic_max(stat[S_SPEED2], speed2_max)
             for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
                 if tool_sum[t, c] != 0.0:
-                    ti.atomic_add(tool_acc[t, c], tool_sum[t, c])
+                    ti.atomic_add(tool_acc[t, c], _on_grid(tool_sum[t, c], WRENCH_QUANTUM))
             if lost_count != 0.0:
-                ti.atomic_add(stat[S_LOST_MASS], lost_mass)
+                ti.atomic_add(stat[S_LOST_MASS], _on_grid(lost_mass, MASS_QUANTUM))
                 ti.atomic_add(stat[S_LOST_COUNT], lost_count)
             if nonfinite != 0.0:
                 ti.atomic_add(stat[S_NONFINITE], nonfinite)
@@ -1050,8 +1062,8 @@ def _substep_kernel(serial: bool, per_particle: bool = False):
 
 substep = _substep_kernel(False)
 substep_serial = _substep_kernel(True)  # every particle loop in the calling thread (CPU)
-# a GPU's layout: one iteration per particle of the listed blocks in step() too, its sums by atomics (the same
-# physics, not the same bits: the order of the sums varies)
+# a GPU's layout: one iteration per particle of the listed blocks in step() too, its sums by atomics of terms on a
+# grid (the same bits in any order, not the block sums' bits)
 substep_per_particle = _substep_kernel(False, per_particle=True)
 
 
