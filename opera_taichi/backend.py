@@ -1,7 +1,9 @@
 """One place that starts Taichi, so every module agrees on the backend."""
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import sys
 
 import numpy as np
 import taichi as ti
@@ -30,6 +32,15 @@ def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> s
     kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0)
     if default_fp is not None:
         kwargs["default_fp"] = default_fp
+    # Taichi prints its "Starting on arch=..." line to stdout: a diagnostic, so to stderr (stdout stays the run's
+    # own output, empty under --quiet)
+    with contextlib.redirect_stdout(sys.stderr):
+        _init(arch, kwargs)
+    _started = str(ti.lang.impl.current_cfg().arch).split(".")[-1]
+    return _started
+
+
+def _init(arch: str, kwargs: dict) -> None:
     if arch == "cpu":
         ti.init(arch=ti.cpu, **kwargs)
     elif arch == "cuda":
@@ -41,8 +52,6 @@ def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> s
             raise UserError("--arch cuda: no usable CUDA device on this machine (use cpu or auto)")
     else:
         ti.init(arch=ti.gpu, **kwargs)  # falls back to CPU when no GPU is found
-    _started = str(ti.lang.impl.current_cfg().arch).split(".")[-1]
-    return _started
 
 
 def current_arch() -> str | None:

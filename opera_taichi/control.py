@@ -118,6 +118,17 @@ class CallableController:
         return ctrl
 
 
+def as_controller(value):
+    """What run_scene takes as its controller: None (the scene's scripts), a Controller, or a function
+    `fn(sim, t)` (wrapped in a CallableController). Anything else is refused before the run starts."""
+    if value is None or isinstance(value, Controller):
+        return value
+    if callable(value):
+        return CallableController(value)
+    raise TypeError(f"controller: a Controller (an object with control(sim, t)) or a function fn(sim, t), got "
+                    f"{type(value).__name__}")
+
+
 def driver_of(controller) -> str:
     """What commands the machines, as the manifest records it: 'script' (the scene's motion scripts) or the
     controller's own name for itself (`driver`, else `source`, else its class)."""

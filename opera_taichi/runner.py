@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .control import ScriptController, driver_of
+from .control import ScriptController, as_controller, driver_of
 from .errors import DivergenceError, UserError
 from .model import build_model
 from .observers import (Checkpointer, Heartbeat, JointsCsv, Observer, ObserverBus, RunContext, SoilMassCsv,
@@ -253,6 +253,7 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
     newest checkpoint. Raises UserError (bad input) or DivergenceError (after writing what was recorded)."""
     from .progress import Progress
 
+    controller = as_controller(controller)  # (a wrong one refused before any folder or kernel)
     if not hasattr(scene, "sim"):  # a path: load it as `run` does
         from .scene import load_scene
 

@@ -179,15 +179,20 @@ class Simulation:
 
     def set_state(self, state: State) -> None:
         """Put a State back; the simulation then goes on exactly as the one it was taken from."""
+        # every check before anything is set: a refused state leaves the simulation as it was
         if set(state.machines) != set(self.machines):
             raise ValueError(f"the state's machines {sorted(state.machines)} are not this model's "
                              f"{sorted(self.machines)}")
         for name, ms in state.machines.items():
-            self.machines[name].set_state(ms)
+            if list(ms.joints) != self.machines[name].joint_names:
+                raise ValueError(f"machine {name}: the state's joints {list(ms.joints)} are not this machine's "
+                                 f"{self.machines[name].joint_names}")
+        if self.soil is not None and state.soil is None:
+            raise ValueError("the state carries no soil arrays (taken with get_state(soil=False))")
         if self.soil is not None:
-            if state.soil is None:
-                raise ValueError("the state carries no soil arrays (taken with get_state(soil=False))")
-            self.soil.set_state(state.soil)
+            self.soil.set_state(state.soil)  # (refuses another solver layout before it writes anything)
+        for name, ms in state.machines.items():
+            self.machines[name].set_state(ms)
         self.step_count, self.t = int(state.step), float(state.t)
         self.tool_wrench = np.array(state.tool_wrench, dtype=np.float64).reshape(-1, 6)
         self.applied = Control.from_dict(state.control.to_dict()) if state.control is not None \

@@ -91,3 +91,19 @@ def test_a_run_that_cannot_keep_the_pace_says_so_once_and_keeps_it_in_its_warnin
         if said:
             assert "--pace realtime: the simulation cannot keep up" in sim.warnings[0]
             assert "real-time factor 0.50" in sim.warnings[0]
+
+
+def test_a_quiet_run_writes_nothing_to_stdout(tmp_path):
+    """`run --quiet` from a shell: stdout stays empty (Taichi's start line goes to stderr), so a script can pipe
+    it; the run folder is made."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    out = subprocess.run([sys.executable, "cli.py", "run", "scenes/blade_cut.yaml", "--quiet", "--out",
+                          str(tmp_path / "run"), "--set", "sim.duration=0.01", "--set", "soil.overrides.radius=0.08",
+                          "--set", "output.plots=false"], cwd=root, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout == ""
+    assert (tmp_path / "run" / "manifest.json").exists()

@@ -179,3 +179,32 @@ def test_get_state_set_state_round_trip_continues_bit_for_bit():
         assert np.array_equal(first.soil[key], again.soil[key]), key
     assert np.array_equal(first.machines["zx120"].q, again.machines["zx120"].q)
     assert np.array_equal(first.tool_wrench, again.tool_wrench)
+
+
+def test_a_refused_state_leaves_the_simulation_as_it_was():
+    """A state without the soil's arrays (get_state(soil=False)) is refused by a simulation with soil, and the
+    refusal sets nothing: the machine, the time and the soil stay where the simulation had taken them."""
+    sim = _excavator()
+    light = sim.get_state(soil=False)
+    now = _final(sim, 200, {"boom_joint": 0.5})
+    with pytest.raises(ValueError, match="no soil arrays"):
+        sim.set_state(light)
+    after = sim.get_state()
+    assert not np.array_equal(light.machines["zx120"].q, now.machines["zx120"].q)  # the boom had moved
+    assert after.t == now.t and after.step == now.step
+    assert np.array_equal(after.machines["zx120"].q, now.machines["zx120"].q)
+    for key in now.soil:
+        assert np.array_equal(after.soil[key], now.soil[key]), key
+
+
+def test_run_scene_takes_a_function_as_its_controller_and_refuses_anything_else_before_it_starts(tmp_path):
+    """`controller=fn(sim, t)` drives the run as a CallableController; an object that is neither a controller nor
+    a function is refused before a run folder is made or the soil is built."""
+    scene = ot.load_scene(DIG_CYCLE, ["sim.duration=0.5", "output.plots=false"])
+    result = ot.run_scene(scene, out_dir=tmp_path / "fn", quiet=True, controller=lambda sim, t: {"boom_joint": -0.3})
+    assert result.status == "done"
+    cols = read_csv_columns(tmp_path / "fn" / "joints.csv")
+    assert np.all(cols["boom_joint.q_cmd"][1:] == -0.3)
+    with pytest.raises(TypeError, match="controller: a Controller"):
+        ot.run_scene(scene, out_dir=tmp_path / "bad", quiet=True, controller=42)
+    assert not (tmp_path / "bad").exists()
