@@ -73,6 +73,8 @@ def as_control(value, machine_names: list[str], t: float) -> Control:
 
 
 def _as_float(value):
+    if isinstance(value, (bool, str, bytes)):
+        return value  # not a number, though float() takes it: refused, naming its joint, where the machine applies it
     try:
         return float(value)
     except (TypeError, ValueError):

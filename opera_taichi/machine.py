@@ -165,12 +165,19 @@ class BulletMachine:
         False; a release resumes no speed given before the hold). A target that is no finite number is refused before
         anything is applied (it would turn the machine's state into NaN)."""
         for kind, unit, values in (("target", "rad", q_target), ("speed target", "rad/s", qd_target)):
+            if values is not None and not hasattr(values, "items"):
+                raise UserError(f"joint {kind}s: a {{joint name: {unit}}} dict, got {type(values).__name__} "
+                                f"{values!r}")
             for name, value in (values or {}).items():
                 self._joint(name)
                 if not _finite(value):
-                    raise UserError(f"joint {kind}: {name} = {value!r} is not a finite number ({unit})")
-        if track_speeds is not None and not all(_finite(v) for v in track_speeds):
-            raise UserError(f"track speeds: {tuple(track_speeds)!r} are not finite numbers (m/s)")
+                    raise UserError(f"joint {kind}: {name} = {value!r} ({type(value).__name__}) is not a finite "
+                                    f"number ({unit})")
+        if track_speeds is not None and (isinstance(track_speeds, (str, bytes)) or not hasattr(track_speeds, "__len__")
+                                         or len(track_speeds) != 2 or not all(_finite(v) for v in track_speeds)):
+            raise UserError(f"track speeds: (left, right) in m/s, two finite numbers, got {track_speeds!r}")
+        if hold is not None and not isinstance(hold, (bool, np.bool_)):
+            raise UserError(f"hold: True (emergency stop), False (release) or None (unchanged), got {hold!r}")
         if hold is not None and bool(hold) != self._hold:
             self._hold = bool(hold)
             if self._hold:
@@ -421,7 +428,7 @@ class BulletMachine:
 
 
 def _finite(value) -> bool:
-    try:
-        return math.isfinite(float(value))
-    except (TypeError, ValueError):
+    """A finite real number: not a bool, a string or an array (float() would take True, "0.1" and a 1-element array)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         return False
+    return math.isfinite(float(value))

@@ -76,8 +76,16 @@ def test_a_target_that_is_no_number_is_refused_and_the_machine_goes_on(sim):
     _run(sim, 0.05)
     before = sim.get_state()
     for control in ({"boom_joint": float("nan")}, ot.MachineControl(qd_target={"arm_joint": float("inf")}),
-                    {"boom_joint": -0.5, "arm_joint": "high"}):
+                    {"boom_joint": -0.5, "arm_joint": "high"}, {"boom_joint": True}, {"boom_joint": "0.1"},
+                    {"boom_joint": np.array([0.1, 0.2])}, ot.MachineControl(q_target={"boom_joint": np.zeros(4)})):
         with pytest.raises(UserError, match=r"is not a finite number \(rad"):
+            sim.step(control)
+    # commands of the wrong shape: one line saying what is expected, not a Python error from inside
+    for control, message in ((ot.MachineControl(qd_target=[0.1, 0.2, 0.3, 0.4]), r"speed targets: a \{joint name"),
+                             (ot.MachineControl(q_target=np.zeros(4)), r"joint targets: a \{joint name"),
+                             (ot.MachineControl(track_speeds=(0.5,)), r"track speeds: \(left, right\)"),
+                             (ot.MachineControl(hold="yes"), r"hold: True")):
+        with pytest.raises(UserError, match=message):
             sim.step(control)
     after = sim.get_state()
     assert after.t == before.t and np.array_equal(after.machines["zx120"].q, before.machines["zx120"].q)
