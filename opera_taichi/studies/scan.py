@@ -147,15 +147,18 @@ def _read_las(path: Path) -> Scan:
     pts = np.stack([np.asarray(las.x, float), np.asarray(las.y, float), np.asarray(las.z, float)], axis=1)
     units = "m"
     try:
-        crs = las.header.parse_crs()
-    except Exception:  # noqa: BLE001 - no or unreadable CRS: nothing declared
+        crs = las.header.parse_crs()  # None without a CRS record; pyproj only when there is one
+    except ImportError:  # a declared CRS left unchecked would let a scan in feet through as metres
+        raise UserError(f"--terrain: {path}: the file declares a coordinate system; checking its units needs pyproj "
+                        f"(pip install 'opera-taichi[studies]')") from None
+    except Exception:  # noqa: BLE001 - an unreadable CRS record: nothing declared
         crs = None
-    if crs is not None:
-        try:
-            unit = crs.axis_info[0].unit_name.lower()
-            units = "m" if unit in ("metre", "meter", "m") else unit
-        except (AttributeError, IndexError):
-            pass
+    if crs is not None:  # every axis (a compound CRS has the vertical one too) in metres
+        for axis in getattr(crs, "axis_info", None) or []:
+            unit = (getattr(axis, "unit_name", "") or "").lower()
+            if unit not in ("metre", "meter", "m", ""):
+                units = unit
+                break
     return Scan(path, pts, "points", units=units)
 
 
@@ -310,6 +313,33 @@ def grid_points(points: np.ndarray, x: np.ndarray, y: np.ndarray) -> Gridded:
     with np.errstate(invalid="ignore", divide="ignore"):
         z = np.where(count > 0, total / np.maximum(count, 1), np.nan)
     return Gridded(np.asarray(x, float), np.asarray(y, float), z, count)
+
+
+def grid_scan(scan: Scan, transform: Transform, x: np.ndarray, y: np.ndarray) -> tuple[Gridded, np.ndarray]:
+    """The scan placed by `transform` and gridded on the nodes x, y; and its placed points. A raster whose placed
+    cell centres fall on the nodes, one per cell (the run's own grid, or one aligned with it), is taken cell for
+    cell, exactly; any other raster is densified first (`densify_raster`)."""
+    cell = float(abs(x[1] - x[0])) if len(x) > 1 else 1.0
+    if scan.raster is not None:
+        placed = transform.apply(scan.points)
+        if _on_nodes(placed, x, y):
+            return grid_points(placed, x, y), placed
+    placed = transform.apply(densify_raster(scan, cell))
+    return grid_points(placed, x, y), placed
+
+
+def _on_nodes(points: np.ndarray, x: np.ndarray, y: np.ndarray, tol: float = 1e-3) -> bool:
+    """Every point within tol cells of a node of x, y (or off the grid), and no two in one cell."""
+    if len(x) < 2 or len(y) < 2:
+        return False
+    dx, dy = x[1] - x[0], y[1] - y[0]
+    u, v = (points[:, 0] - x[0]) / dx, (points[:, 1] - y[0]) / dy
+    iu, iv = np.rint(u), np.rint(v)
+    inside = (iu >= 0) & (iu < len(x)) & (iv >= 0) & (iv < len(y))
+    if not inside.any() or np.max(np.abs(u - iu)[inside]) > tol or np.max(np.abs(v - iv)[inside]) > tol:
+        return False
+    flat = iu[inside].astype(np.int64) * len(y) + iv[inside].astype(np.int64)
+    return len(np.unique(flat)) == len(flat)
 
 
 def densify_raster(scan: Scan, cell: float) -> np.ndarray:
