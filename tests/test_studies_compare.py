@@ -339,3 +339,123 @@ def test_joint_log_from_a_ros2_bag(tmp_path):
     res = cmp.compare(run, joints=tmp_path / "bag", out=tmp_path / "cmp")
     assert set(res["joints"]) == {"arm_joint", "boom_joint"}  # swing_joint: not in the run
     assert res["joints_lag_s"] == pytest.approx(-0.3, abs=0.011) and res["joints_rate_ratio"] == pytest.approx(1, 0.02)
+
+
+# ----------------------------------------------------------------------------------------------- QA findings
+def machine_las(path: Path, after=True, keep=None, dz=0.0, density=800.0):
+    """A scan already in the machine frame (no transform needed), optionally only where keep(x, y)."""
+    pts = scan_points(after=after, density=density) @ TRUE.matrix().T + [TRUE.x, TRUE.y, TRUE.z]
+    if keep is not None:
+        pts = pts[keep(pts[:, 0], pts[:, 1])]
+    write_las(path, pts + [0.0, 0.0, dz])
+    return path
+
+
+def test_a_scan_covering_little_of_the_dig_is_refused_a_partial_one_compared_on_what_it_covers(tmp_path, capsys):
+    run = make_run(tmp_path / "run")
+    strip = machine_las(tmp_path / "strip.las", keep=lambda x, y: x < 3.2)   # beside the trench, not on it
+    code, err = _cli([run, "--terrain", strip, "--out", tmp_path / "strip"], capsys)
+    assert code == 2 and "--terrain: scan strip.las covers" in err and "of the dig area" in err and "\n" not in err
+    assert not (tmp_path / "strip" / "comparison.json").exists()
+    # two thirds of the trench: its volume and the run's taken on the same cells, so they agree; a warning says so
+    half = machine_las(tmp_path / "half.las", keep=lambda x, y: x < 6.2)
+    res = cmp.compare(run, terrain=half, out=tmp_path / "half")
+    assert 0.5 < res["reference_coverage_of_dig_area"] < 0.9
+    assert res["cut_volume_relative_error"] == pytest.approx(0.0, abs=0.03)
+    assert res["cut_volume_m3"] < 0.9 * truth()["cut"]  # the run's cut on the covered cells only
+    assert res["compared_area_m2"] < res["dig_area_m2"]
+    saved = json.loads((tmp_path / "half" / "comparison.json").read_text())
+    assert any("covers only" in w for w in saved["warnings"])
+    assert "covers only" in capsys.readouterr().err
+
+
+def test_a_heightmap_on_the_run_grid_is_taken_exactly(tmp_path):
+    run = make_run(tmp_path / "run")
+    res = cmp.compare(run, terrain=run / "terrain_final.npz", terrain_before=run / "terrain_initial.npz",
+                      out=tmp_path / "same")
+    assert res["terrain_rmse_m"] == 0.0 and res["terrain_max_abs_error_m"] == 0.0
+    assert res["reference_max_depth_m"] == res["max_depth_m"]
+    assert res["reference_cut_volume_m3"] == res["cut_volume_m3"]
+    # a crop of it, on the same nodes: still exact where it covers
+    with np.load(run / "terrain_final.npz") as f:
+        np.savez(tmp_path / "crop.npz", x=f["x"][20:150], y=f["y"][10:110], z=f["z"][20:150, 10:110])
+    crop = cmp.compare(run, terrain=tmp_path / "crop.npz", out=tmp_path / "crop")
+    assert crop["terrain_rmse_m"] == 0.0
+
+
+def test_a_rerun_replaces_all_outputs_and_out_refuses_another_runs_folder(tmp_path, capsys):
+    t = np.arange(0.0, 10.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    other = make_run(tmp_path / "other")
+    out = tmp_path / "cmp"
+    cmp.compare(run, terrain=run / "terrain_final.npz", joints=run / "joints.csv", out=out)
+    assert (out / "comparison_joints.png").is_file()
+    cmp.compare(run, terrain=run / "terrain_final.npz", out=out)
+    assert not (out / "comparison_joints.png").exists()  # no figure left from the earlier compare
+    assert "joints" not in json.loads((out / "comparison.json").read_text())
+    before = sorted(p.name for p in other.iterdir())
+    code, err = _cli([run, "--joints", run / "joints.csv", "--out", other], capsys)
+    assert code == 2 and "--out:" in err and "run folder of another run" in err and "\n" not in err
+    assert sorted(p.name for p in other.iterdir()) == before
+    code, err = _cli([other, "--against", other, "--out", out], capsys)  # out holds run's comparison
+    assert code == 2 and "--out:" in err and "comparison of another run" in err
+
+
+def test_a_las_in_us_survey_feet_is_refused(tmp_path, capsys, monkeypatch):
+    pyproj = pytest.importorskip("pyproj")  # in the studies and test extras
+    run = make_run(tmp_path / "run")
+    pts = scan_points(after=True, density=50) @ TRUE.matrix().T + [TRUE.x, TRUE.y, TRUE.z]
+    for name, epsg in (("feet.las", 2227), ("metres.las", 32654)):
+        header = laspy.LasHeader(point_format=3, version="1.4")
+        header.offsets, header.scales = pts.min(axis=0), [0.001] * 3
+        header.add_crs(pyproj.CRS.from_epsg(epsg))
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+        las.write(str(tmp_path / name))
+    code, err = _cli([run, "--terrain", tmp_path / "feet.las", "--out", tmp_path / "f"], capsys)
+    assert code == 2 and "feet.las: the file declares its units as us survey foot" in err
+    assert scans.read_scan(tmp_path / "metres.las").units == "m"
+    # an install without pyproj cannot check the declared units: it says so instead of reading feet as metres
+    monkeypatch.setitem(sys.modules, "pyproj", None)
+    code, err = _cli([run, "--terrain", tmp_path / "feet.las", "--out", tmp_path / "f"], capsys)
+    assert code == 2 and "declares a coordinate system; checking its units needs pyproj" in err and "\n" not in err
+
+
+def test_the_profile_title_names_the_dig_lines_origin(tmp_path, monkeypatch):
+    from opera_taichi.studies import figures
+
+    titles = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: titles.append(fig.axes[0].get_title()))
+    run = make_run(tmp_path / "run")
+    res = cmp.compare(run, against=run, out=tmp_path / "self")
+    ox, oy = res["dig_line"]["origin_xy_m"]
+    assert any(f"x {ox:.2f}, y {oy:.2f} m" in t for t in titles), titles
+
+
+def test_misplaced_scan_threshold_and_flag_order_are_refused(tmp_path, capsys):
+    run = make_run(tmp_path / "run")
+    high = machine_las(tmp_path / "high.las", dz=1.5)
+    code, err = _cli([run, "--terrain", high, "--out", tmp_path / "h"], capsys)
+    assert code == 2 and "lies +1.5 m above the run's initial terrain" in err and "\n" not in err
+    after = machine_las(tmp_path / "after.las")
+    code, err = _cli([run, "--terrain", after, "--change-threshold", "5", "--out", tmp_path / "t"], capsys)
+    assert code == 2 and "--change-threshold: neither the run nor" in err and "largest change 0.5" in err
+    code, err = _cli([run, "--terrain-before", after], capsys)
+    assert code == 2 and err == "error: --terrain-before: needs --terrain (the scan after the dig)"
+
+
+def test_a_fit_gone_wrong_is_flagged(tmp_path, capsys):
+    """Started 40 deg off in yaw, the rigid fit settles on a wrong placement; its residual says so."""
+    from scipy.spatial.transform import Rotation
+
+    run = make_run(tmp_path / "run")
+    write_las(tmp_path / "after.las", scan_points(after=True, seed=3, density=800))
+    rz, c = Rotation.from_euler("z", 40.0, degrees=True).as_matrix(), np.array([6.0, 0.0, 0.0])
+    start = scans.Transform(*(rz @ (np.array([TRUE.x, TRUE.y, TRUE.z]) - c) + c),
+                            *Rotation.from_matrix(rz @ TRUE.matrix()).as_euler("xyz"))
+    res = cmp.compare(run, terrain=tmp_path / "after.las", transform=start, fit="rigid", out=tmp_path / "c",
+                      figures=False)
+    assert placement_error(res["transform"]) > 0.5  # it did go wrong
+    assert any("the fitted placement looks wrong" in w for w in res["warnings"])
+    assert "warning: --terrain: the fitted placement looks wrong" in capsys.readouterr().err

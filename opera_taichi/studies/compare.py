@@ -4,7 +4,12 @@ Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial
 - the reference final surface is the scan (gridded at the run's cell size, in the machine frame) or the other run's
   final terrain; its initial surface is the scan taken before the dig, else the run's own initial terrain;
 - the dig area: the cells where the run or the reference changed by more than `change_threshold` (m), grown by
-  `margin_m`; volumes and errors are summed over it, so scan noise far from the dig adds nothing;
+  `margin_m`; volumes and errors are summed over it, so scan noise far from the dig adds nothing. Against a
+  reference, the run's and the reference's volumes and depths are both taken over the part of the dig area the
+  reference covers (`compared_area_m2`), so a partial scan is compared like for like; a reference that covers less
+  than MIN_DIG_COVERAGE of the dig area is refused, less than WARN_DIG_COVERAGE gets a warning;
+- a reference that differs from its initial surface by more than the threshold over the ground the run left
+  undisturbed (median) is not placed vertically (every cell would count as dug) and is refused;
 - cut / fill: the volume below / above the initial surface, sum of max(0, -dz) dA and max(0, dz) dA;
 - max depth: the largest drop below the initial surface, and where; heave: the largest rise (the spoil beside
   the trench), where, and on which side of the trench as seen from the machine (left, right, front = beyond the
@@ -37,6 +42,12 @@ MAX_LAG_S = 5.0            # s, the largest lag searched
 STILL_RATE = 1e-3          # rad/s: a reference joint this slow (90th percentile) stands still: no rate ratio
 FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
 MAX_VERTICAL_OFFSET_M = 2.0  # a placed scan this far above/below the run's terrain has not been placed
+MIN_DIG_COVERAGE = 0.5     # a reference covering less of the dig area than this is refused...
+WARN_DIG_COVERAGE = 0.9    # ...less than this gets a warning (its volumes miss part of the dig)
+FIT_WARN_RESIDUAL_M = 0.05  # a fitted placement with a larger residual (good fits: ~0.02 m on DEM grain)...
+FIT_WARN_INLIERS = 0.5      # ...or fewer inliers than this (good fits: ~0.75) probably went wrong
+OUTPUT_FILES = (COMPARISON_FILE, PROFILE_FILE, "comparison_terrain.png", "comparison_profile.png",
+                "comparison_joints.png")  # all a compare writes: replaced together, never left from an earlier one
 
 
 # ----------------------------------------------------------------------------------------------- run folders
@@ -170,8 +181,7 @@ def place_scan(scan: "scans.Scan", grid: dict, transform: "scans.Transform | Non
         fit_result = scans.fit_transform(pts, ref["x"], ref["y"], ref["z"], start, mode=fit)
         transform = fit_result.transform
     transform = transform or scans.Transform()
-    placed = transform.apply(pts)
-    gridded = scans.grid_points(placed, x, y)
+    gridded, placed = scans.grid_scan(scan, transform, x, y)
     common = np.isfinite(gridded.z) & np.isfinite(z_run)
     lo, hi = placed.min(axis=0), placed.max(axis=0)
     if common.sum() < max(3, 0.05 * min(z_run.size, len(placed))):
@@ -188,8 +198,11 @@ def place_scan(scan: "scans.Scan", grid: dict, transform: "scans.Transform | Non
 
 
 def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference_initial: dict | None,
-                       label: str, change_threshold: float, margin_m: float) -> tuple[dict, dict]:
-    """The terrain block of comparison.json and the arrays the figures need."""
+                       label: str, change_threshold: float, margin_m: float, key: str = "--terrain",
+                       warnings: list | None = None) -> tuple[dict, dict]:
+    """The terrain block of comparison.json and the arrays the figures need. UserError (naming `key`) when the
+    reference cannot be compared: not placed vertically, no dig area, too little of the dig area covered; a partial
+    cover is appended to `warnings`."""
     initial = read_terrain(run_dir / "terrain_initial.npz", "RUN_DIR")
     final = read_terrain(run_dir / "terrain_final.npz", "RUN_DIR")
     x, y, z0, z1 = initial["x"], initial["y"], initial["z"], final["z"]
@@ -200,15 +213,49 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
         ref1 = reference_final
         ref0 = reference_initial if reference_initial is not None else z0
         changes.append(ref1 - ref0)
-    mask = dig_area(changes, change_threshold, int(round(margin_m / abs(x[1] - x[0]))))
+    margin_cells = int(round(margin_m / abs(x[1] - x[0])))
+    mask = dig_area(changes, change_threshold, margin_cells)
     cell = abs((x[1] - x[0]) * (y[1] - y[0]))
     out = {"cell_m": float(abs(x[1] - x[0])), "change_threshold_m": change_threshold, "margin_m": margin_m,
            "dig_area_m2": float(mask.sum() * cell)}
-    run = surface_metrics(z0, z1, x, y, mask, base_xy, yaw)
+    compared = mask
+    if ref1 is not None:
+        covered = np.isfinite(ref1) & np.isfinite(ref0)
+        # the ground the run left alone: there the reference must match its initial surface, or it is misplaced
+        still = covered & ~dig_area(changes[:1], change_threshold, margin_cells)
+        if still.sum() >= 10:
+            offset = float(np.median((ref1 - ref0)[still]))
+            if abs(offset) > change_threshold:
+                initial = "the run's initial terrain" if reference_initial is None else "its scan before the dig"
+                raise UserError(
+                    f"{key}: {label} lies {offset:+.3g} m {'above' if offset > 0 else 'below'} {initial} "
+                    f"over the ground the run left undisturbed (median over {int(still.sum())} cells), more than "
+                    f"--change-threshold {change_threshold:g} m: every cell would count as dug; place it with "
+                    f"--transform (its z) or --fit-transform, or give --terrain-before")
+        if not mask.any():
+            largest = max(float(np.nanmax(np.abs(dz), initial=0.0)) for dz in changes)
+            raise UserError(f"--change-threshold: neither the run nor {label} changed by more than "
+                            f"{change_threshold:g} m anywhere (largest change {largest:.3g} m): no dig area to "
+                            f"compare; give a smaller --change-threshold")
+        compared = mask & covered
+        coverage = float(compared.sum() / mask.sum())
+        if coverage < WARN_DIG_COVERAGE:
+            gx, gy = np.meshgrid(x, y, indexing="ij")
+            where = (f"the dig area spans x {gx[mask].min():.3g}..{gx[mask].max():.3g}, y {gy[mask].min():.3g}.."
+                     f"{gy[mask].max():.3g} m ({mask.sum() * cell:.3g} m2)")
+            if coverage < MIN_DIG_COVERAGE:
+                raise UserError(f"{key}: {label} covers {100 * coverage:.0f}% of the dig area ({where}); a comparison "
+                                f"needs at least {100 * MIN_DIG_COVERAGE:.0f}%: give a scan of the dig or check its "
+                                f"placement")
+            if warnings is not None:
+                _warn(warnings, f"{key}: {label} covers only {100 * coverage:.0f}% of the dig area ({where}): "
+                                f"volumes and depths are compared over the covered part only")
+        out["compared_area_m2"] = float(compared.sum() * cell)
+    run = surface_metrics(z0, z1, x, y, compared, base_xy, yaw)
     out.update(run)
     arrays = dict(x=x, y=y, z0=z0, z1=z1, mask=mask, ref0=ref0, ref1=ref1, label=label)
     if ref1 is not None:
-        ref = surface_metrics(ref0, ref1, x, y, mask, base_xy, yaw)
+        ref = surface_metrics(ref0, ref1, x, y, compared, base_xy, yaw)
         out.update({f"reference_{k}": v for k, v in ref.items()})
         both = mask & np.isfinite(ref1) & np.isfinite(z1)
         err = (z1 - ref1)[both]
@@ -226,7 +273,8 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
         if run["max_depth_xy_m"] and ref["max_depth_xy_m"]:
             out["max_depth_position_error_m"] = float(np.hypot(*np.subtract(run["max_depth_xy_m"],
                                                                              ref["max_depth_xy_m"])))
-    depth_xy = run["cut_centre_xy_m"]  # the dig line runs through the middle of the cut
+    # the dig line runs through the middle of the run's whole cut (not only the part a partial scan covers)
+    depth_xy = surface_metrics(z0, z1, x, y, mask, base_xy, yaw)["cut_centre_xy_m"]
     if depth_xy is None and ref1 is not None:
         depth_xy = ref["cut_centre_xy_m"]
     origin, direction, s = dig_line(x, y, depth_xy, base_xy, yaw)
@@ -239,6 +287,7 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
             profile["reference_initial_z_m"] = sample(x, y, ref0, pts)
     out["dig_line"] = {"origin_xy_m": origin.tolist(), "direction_xy": direction.tolist()}
     arrays["profile"] = profile
+    arrays["dig_line_origin"] = origin
     return out, arrays
 
 
@@ -378,13 +427,13 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
     """Compare a run folder with a scan and/or a joint log, or with another run; write comparison.json,
     profile.csv and the figures into `out` (default: the run folder). Returns the comparison."""
     run_dir = run_folder(run_dir, "RUN_DIR")
-    if against is None and terrain is None and joints is None:
-        raise UserError("compare: nothing to compare the run with; give --terrain SCAN, --joints LOG or --against "
-                        "RUN_DIR")
     if against is not None and (terrain or terrain_before or joints):
         raise UserError("--against: compares two runs; give it without --terrain, --terrain-before and --joints")
     if terrain_before is not None and terrain is None:
         raise UserError("--terrain-before: needs --terrain (the scan after the dig)")
+    if against is None and terrain is None and joints is None:
+        raise UserError("compare: nothing to compare the run with; give --terrain SCAN, --joints LOG or --against "
+                        "RUN_DIR")
     if (transform is not None or fit) and terrain is None:
         raise UserError("--transform / --fit-transform: place a scan; give --terrain")
     if not change_threshold > 0:
@@ -394,8 +443,9 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
     if isinstance(transform, str):
         transform = scans.Transform.parse(transform)
     out_dir = Path(out) if out is not None else run_dir
-    out_dir.mkdir(parents=True, exist_ok=True)
+    _check_out(out_dir, run_dir)
     result: dict = {"run": str(run_dir.resolve())}
+    warnings: list[str] = []
     figs: dict = {}
     has_terrain = (run_dir / "terrain_final.npz").is_file()
     ref_final = ref_initial = None
@@ -426,11 +476,13 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
             fit = None  # the same placement for the scan after the dig
             if fit0 is not None:
                 placement.update(fit0.describe())
+                _fit_warning(fit0, "--terrain-before", warnings)
             placement["before_empty_cells"] = g0.empty_cells
         after = scans.read_scan(terrain, "--terrain")
         g1, fit1, transform = place_scan(after, grid, transform, fit, fit_against, key="--terrain")
         if fit1 is not None:
             placement.update(fit1.describe())
+            _fit_warning(fit1, "--terrain", warnings)
             placement["fitted_on"] = "scan after the dig against the run's initial terrain (dug area left out)"
         if "mode" not in placement:
             placement.update(transform.describe(), mode="given" if transform != scans.Transform() else "identity")
@@ -441,7 +493,8 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
     if has_terrain:
         block, figs["terrain"] = terrain_comparison(run_dir, reference_final=ref_final, reference_initial=ref_initial,
                                                     label=label or "", change_threshold=change_threshold,
-                                                    margin_m=margin_m)
+                                                    margin_m=margin_m, key="--against" if against else "--terrain",
+                                                    warnings=warnings)
         result.update(block)
     elif terrain is not None or against is not None:
         if terrain is not None:
@@ -458,6 +511,12 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
         block, figs["joints"] = joint_comparison(t_run, q_run, t_ref, q_ref, ref_label)
         figs["joints"]["label"] = ref_label
         result.update(block)
+    if warnings:
+        result["warnings"] = warnings
+    # everything computed: now replace the previous compare's outputs as a whole (none of them left stale)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in OUTPUT_FILES:
+        (out_dir / name).unlink(missing_ok=True)
     profile = figs.get("terrain", {}).get("profile")
     if profile is not None:
         _write_profile(out_dir / PROFILE_FILE, profile)
@@ -476,6 +535,39 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
 
             print(f"warning: comparison figures not written ({type(exc).__name__}: {exc})", file=sys.stderr)
     return result
+
+
+def _check_out(out_dir: Path, run_dir: Path) -> None:
+    """--out must not be another run's folder, nor hold another run's comparison (it would be replaced)."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"--out: {out_dir} is a file; give a folder")
+    if not out_dir.is_dir() or out_dir.resolve() == run_dir.resolve():
+        return
+    if (out_dir / "manifest.json").is_file():
+        raise UserError(f"--out: {out_dir} is the run folder of another run; give a folder of its own, or leave "
+                        f"--out out to write into {run_dir}")
+    try:
+        previous = json.loads((out_dir / COMPARISON_FILE).read_text()).get("run")
+    except (OSError, ValueError, AttributeError):
+        previous = None
+    if previous and Path(previous) != run_dir.resolve():
+        raise UserError(f"--out: {out_dir} holds the comparison of another run ({previous}); give another folder")
+
+
+def _fit_warning(fit, key: str, warnings: list) -> None:
+    if fit.residual_rms_m > FIT_WARN_RESIDUAL_M or fit.inlier_fraction < FIT_WARN_INLIERS:
+        _warn(warnings, f"{key}: the fitted placement looks wrong: residual {fit.residual_rms_m:.3g} m over "
+                        f"{100 * fit.inlier_fraction:.0f}% inliers (a good fit: under {FIT_WARN_RESIDUAL_M:g} m, over "
+                        f"{100 * FIT_WARN_INLIERS:.0f}%); give --transform close to the scan's placement to start "
+                        f"from")
+
+
+def _warn(warnings: list, text: str) -> None:
+    """Into comparison.json, and on stderr at once (before any refusal it may explain)."""
+    import sys
+
+    warnings.append(text)
+    print(f"warning: {text}", file=sys.stderr)
 
 
 def _write_profile(path: Path, profile: dict) -> None:

@@ -83,9 +83,10 @@ def plot_profile(arrays: dict, png_path: Path) -> None:
     ax.plot(s, prof["run_z_m"], color="tab:blue", lw=1.8, label="run after")
     if "reference_z_m" in prof:
         ax.plot(s, prof["reference_z_m"], color="black", lw=1.8, label=f"{arrays.get('label') or 'reference'} after")
-    o = prof["x_m"][0], prof["y_m"][0]
-    ax.set_title(f"Profile along the dig line (from x {o[0]:.2f}, y {o[1]:.2f} m toward the machine's side: s < 0)",
-                 fontsize=10)
+    # s = 0 is the line's origin, the centre of the cut (not its first sample)
+    o = arrays["dig_line_origin"]
+    ax.set_title(f"Profile along the dig line through the centre of the cut at x {o[0]:.2f}, y {o[1]:.2f} m "
+                 f"(s < 0: toward the machine)", fontsize=10)
     ax.set_xlabel("s along the dig line from the centre of the cut (m)")
     ax.set_ylabel("z (m)")
     ax.grid(alpha=0.3)
