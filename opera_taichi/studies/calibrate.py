@@ -38,9 +38,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from .study import Parameter, _is_num, _parameter, load_study, make_task, run_point, scale
+from .study import CSV_SHORT, Parameter, _is_num, _metric, _parameter, load_study, make_task, run_point, scale
 
 OBJECTIVES = ("force", "terrain", "joints", "metric")
+REFINE_MIN_TRIALS = 4  # refine_point fits through 3 finished trials; the 4th is the refined one
 
 
 # ----------------------------------------------------------------------------------------------- objectives
@@ -100,6 +101,8 @@ def objective_value(run_dir: Path, spec: dict) -> dict:
         value = collect_metrics(run_dir, [m["name"]], spec.get("reference") or {})[m["name"]]
         if value is None:
             raise UserError(f"calibrate.metric.name: {m['name']} has no value in {run_dir}")
+        if not _is_num(value):
+            raise UserError(f"calibrate.metric.name: {m['name']} is {value!r} in {run_dir}, not a number")
         target = float(m["target"])
         denom = abs(target) or 1.0
         return {"loss": abs(value - target) / denom, "signed": (value - target) / denom, m["name"]: value}
@@ -160,6 +163,13 @@ def _section(study, label: str, trials_override: int | None) -> dict:
         if not file.is_file():
             raise UserError(f"{label}: calibrate.force.file: no file at {file}")
         f = {**f, "file": str(file.resolve())}
+        for key in ("column", "tool"):
+            if key in f and not (isinstance(f[key], str) and f[key]):
+                raise UserError(f"{label}: calibrate.force.{key}: expected a name (a string), got {f[key]!r}")
+        smooth = f.get("smooth_s", 0.2)
+        if not (_is_num(smooth) and smooth >= 0):
+            raise UserError(f"{label}: calibrate.force.smooth_s: expected a number of seconds >= 0 (0: no "
+                            f"smoothing), got {smooth!r}")
         t_ref, _ = read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))  # bad files stop here
         window = f.get("t")
         if window is not None:  # the measured curve's window holds whatever a trial gives: checked once, here
@@ -175,8 +185,18 @@ def _section(study, label: str, trials_override: int | None) -> dict:
         m = c.get("metric")
         if not (isinstance(m, dict) and isinstance(m.get("name"), str) and "target" in m):
             raise UserError(f"{label}: calibrate.metric: required with objective metric: {{name, target}}")
+        bad = sorted(set(m) - {"name", "target"})
+        if bad:
+            raise UserError(f"{label}: calibrate.metric.{bad[0]}: unknown key; allowed: name, target")
         if not _is_num(m["target"]):
             raise UserError(f"{label}: calibrate.metric.target: expected a finite number, got {m['target']!r}")
+        try:  # the form a study's metric has (its files, tools and columns: _check_outputs)
+            _metric(m["name"], label, 0)
+        except UserError as exc:
+            raise UserError(str(exc).replace("metrics.0:", "calibrate.metric.name:", 1)) from None
+        if m["name"].startswith("compare.") and not study.reference:
+            raise UserError(f"{label}: calibrate.metric.name: compare.* metrics need a `reference` (terrain, joints "
+                            f"or against)")
         spec["metric"] = m
     elif objective == "terrain" and "terrain" not in study.reference and "against" not in study.reference:
         raise UserError(f"{label}: reference.terrain: required with objective terrain (the scan to match)")
@@ -187,8 +207,55 @@ def _section(study, label: str, trials_override: int | None) -> dict:
     refine = c.get("refine", True)
     if not isinstance(refine, bool):
         raise UserError(f"{label}: calibrate.refine: expected true or false, got {refine!r}")
+    note = None
+    if refine and trials < REFINE_MIN_TRIALS:  # the fit needs 3 finished trials before the refined last one
+        if "refine" in c:
+            raise UserError(f"{label}: calibrate.refine: true needs trials >= {REFINE_MIN_TRIALS} (3 to fit, then "
+                            f"the refined one), got {trials}{' (--trials)' if trials_override else ''}; give more "
+                            f"trials or refine: false")
+        refine, note = False, f"refine off: {trials} trial(s), refining needs {REFINE_MIN_TRIALS}"
     seed = c.get("seed", study.seed)
-    return dict(params=params, trials=trials, sampler=sampler, spec=spec, preset=preset, refine=refine, seed=seed)
+    return dict(params=params, trials=trials, sampler=sampler, spec=spec, preset=preset, refine=refine, seed=seed,
+                note=note)
+
+
+def _check_outputs(study, cfg: dict, points: list[dict], label: str) -> None:
+    """check_points, with what the objective reads of a run as extra study metrics: a tool, column or file the runs
+    do not write is refused before the first trial, under the calibrate key that names it."""
+    import dataclasses
+    import re
+
+    from .study import check_points
+
+    spec, probes = cfg["spec"], []
+    if spec["objective"] == "force":
+        f = spec["force"]
+        where = {"tool": f["tool"]} if f.get("tool") is not None else {}
+        probes.append(("calibrate.force", {"name": "force", "file": CSV_SHORT["wrench"],
+                                           "column": f.get("column", "fx"), "where": where}))
+    elif spec["objective"] == "metric":
+        name = spec["metric"]["name"]
+        parts = name.split(".")
+        if parts[0] in CSV_SHORT:
+            probes.append(("calibrate.metric.name", name))
+        elif parts[:2] == ["summary", "tools"] and len(parts) > 2:  # summary.json has a block per tool
+            probes.append(("calibrate.metric.name", {"name": name, "file": CSV_SHORT["wrench"], "column": "t",
+                                                     "where": {"tool": parts[2]}}))
+    n0 = len(study.metrics)
+    try:
+        check_points(dataclasses.replace(study, metrics=[*study.metrics, *(m for _, m in probes)]), points, label)
+    except UserError as exc:
+        hit = re.match(rf"{re.escape(label)}: metrics\.(\d+): (.*)$", str(exc), re.S)
+        if hit is None or int(hit[1]) < n0:
+            raise
+        key, detail = probes[int(hit[1]) - n0][0], hit[2]
+        if "this scene's runs write no" in detail:
+            detail = detail[detail.index("this scene's"):]
+        if key == "calibrate.force":
+            key += ".tool" if " no tool " in detail else ".column" if " no column " in detail else ""
+        elif " no tool " in detail:  # the tool named in a summary key
+            detail = f"{spec['metric']['name']}: the runs have no tool{detail.split(' no tool', 1)[1]}"
+        raise UserError(f"{label}: {key}: {detail}") from None
 
 
 def _sampler(kind: str, seed: int, trials: int):
@@ -243,13 +310,13 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
         from optuna.storages.journal import JournalFileBackend
     except ImportError:
         raise UserError("calibrate: needs optuna (pip install 'opera-taichi[studies]')") from None
-    from .study import Cluster, check_points
+    from .study import Cluster
 
     label = str(path)
     study = load_study(path, out)
     cfg = _section(study, label, trials)
     params = cfg["params"]
-    check_points(study, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)
+    _check_outputs(study, cfg, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)
     study.out.mkdir(parents=True, exist_ok=True)
     trials_dir = study.out / "trials"
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -269,6 +336,8 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
     todo = max(0, cfg["trials"] - n_done)
     say(f"calibrate {study.name}: {cfg['trials']} trials ({n_done} finished before), objective "
         f"{cfg['spec']['objective']} -> {study.out}")
+    if cfg["note"]:
+        say(f"  note: {cfg['note']}")
     wall0 = time.perf_counter()
     all_rows = list(rows.values())
     if todo:
@@ -285,6 +354,10 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
             guess = refine_point(all_rows, params) if last else None
             if guess is not None:
                 opt.enqueue_trial(guess)
+            elif last:  # say so: a sampled last trial is not what `refine` promised
+                n = sum(1 for r in all_rows if r.get("loss") is not None and math.isfinite(r["loss"]))
+                say(f"  warning: refine: " + (f"{n} finished trial(s) before the last, 3 needed" if n < 3 else
+                                              "the fit through the trials has no minimum") + "; the last is sampled")
             trial = opt.ask(dists)
             point = dict(trial.params)
             task = make_task(study, trial.number, point, trials_dir, objective=cfg["spec"])
