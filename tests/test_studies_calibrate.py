@@ -1,6 +1,10 @@
-"""calibrate: what it refuses before the first trial (each check stops before a trial would start)."""
+"""calibrate: what it refuses before the first trial, what a resume may continue, and the preset it writes.
+
+One real calibration (a single 0.3 s trial of a coarse blade cut, about a hundred 12 cm grains, on a one-worker Dask
+cluster) is run once for this file; every other check stops before a trial would start."""
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -22,15 +26,32 @@ set:
   output.wrench_rate: 100
 """
 FORCE = "{file: force.csv, tool: blade, column: fx, t: [0.05, 0.3], smooth_s: 0.05}"
+# a preset file from an earlier calibration (friction, density), this one fits cohesion on top of it
+EARLIER = "preset: sand\nfriction_angle_deg: 38.5\ndensity: 1700.0\ncalibration: {loss: 0.2}\n"
 
 
 def _calibration(folder: Path, name: str, calibrate: str, set_extra: str = "") -> Path:
     (folder / "force.csv").write_text("t,tool,fx\n" + "".join(f"{0.02 * i:.2f},blade,{500 + 40 * i}\n"
                                                               for i in range(16)))
     (folder / "plain.csv").write_text("t,fx\n" + "".join(f"{0.02 * i:.2f},{500 + 40 * i}\n" for i in range(16)))
+    (folder / "earlier.yaml").write_text(EARLIER)
     path = folder / f"{name}.yaml"
     path.write_text(BASE + set_extra.replace("{folder}", str(folder)) + f"calibrate:\n  {calibrate}\n")
     return path
+
+
+COHESION = ("parameters: {soil.overrides.cohesion: {low: 0, high: 2000}}\n  trials: 1\n  refine: false\n"
+            f"  sampler: random\n  objective: force\n  force: {FORCE}")
+WITH_EARLIER = "  soil.preset_file: {folder}/earlier.yaml\n"  # a --set path is the scene file's: absolute
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """A finished one-trial calibration of cohesion on top of earlier.yaml: (its folder, its study file)."""
+    folder = tmp_path_factory.mktemp("cal")
+    path = _calibration(folder, "fit", COHESION, WITH_EARLIER)
+    assert main(["calibrate", str(path), "--workers", "1", "--out", str(folder / "out"), "--quiet"]) == 0
+    return folder, path
 
 
 class _TrialStarted(Exception):
@@ -80,3 +101,58 @@ def test_refine_by_default_with_too_few_trials_says_it_is_off(tmp_path, capsys, 
     with pytest.raises(_TrialStarted):
         calibrate(path, out=tmp_path / "out")
     assert "note: refine off: 3 trial(s), refining needs 4" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda t: t.replace("t: [0.05, 0.3]", "t: [0.1, 0.3]"), "another calibrate.force.t;"),
+    (lambda t: t.replace("sim.duration: 0.3", "sim.duration: 0.25"), "another set.sim.duration, scene;"),
+    (lambda t: t.replace("high: 2000", "high: 3000"), "another calibrate.parameters.soil.overrides.cohesion;"),
+    (lambda t: t.replace("objective: force", "objective: metric\n  metric: {name: wrench.blade.fx.mean, "
+                                             "target: 900}"), "another calibrate.objective, calibrate.force,"),
+    (lambda t: t.replace("name: fit", "name: other"), "holds calibration 'fit', not 'other';"),
+])
+def test_resume_continues_only_the_same_calibration(fitted, tmp_path, capsys, no_trials, change, words):
+    folder, path = fitted
+    out = tmp_path / "out"
+    shutil.copytree(folder / "out", out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    other = folder / f"changed-{tmp_path.name}.yaml"
+    other.write_text(change(path.read_text()))
+    assert main(["calibrate", str(other), "--workers", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and "give another --out" in err and "\n" not in err, err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before  # nothing rewritten
+
+
+def test_resume_of_the_same_calibration_keeps_its_trials(fitted, tmp_path, capsys, no_trials):
+    folder, path = fitted
+    shutil.copytree(folder / "out", tmp_path / "out")
+    # the earlier preset file is read again, not trusted by name: the same content resumes
+    (folder / "earlier.yaml").write_text(EARLIER)
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert "1 trials (1 finished before)" in capsys.readouterr().err
+    # ... a changed one does not: those trials' soil is not this scene's
+    (folder / "earlier.yaml").write_text(EARLIER.replace("38.5", "30.0"))
+    try:
+        assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+        assert "another scene;" in capsys.readouterr().err
+    finally:
+        (folder / "earlier.yaml").write_text(EARLIER)
+
+
+def test_a_journal_without_a_record_of_its_objective_is_not_resumed(tmp_path, capsys, no_trials):
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+
+    path = _calibration(tmp_path, "fit", COHESION)
+    (tmp_path / "out").mkdir()
+    storage = JournalStorage(JournalFileBackend(str(tmp_path / "out" / "optuna.journal")))
+    old = optuna.create_study(study_name="fit", storage=storage)  # as an older calibrate left it
+    old.add_trial(optuna.trial.create_trial(
+        params={"soil.overrides.cohesion": 500.0}, value=0.3,
+        distributions={"soil.overrides.cohesion": optuna.distributions.FloatDistribution(0, 2000)}))
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "holds 1 trial(s) with no record of what they were scored against" in err
+    assert not (tmp_path / "out" / "soil_preset.yaml").exists()

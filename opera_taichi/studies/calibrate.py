@@ -28,6 +28,7 @@ Resumable: the trials live in <out>/optuna.journal (Optuna's journal storage); a
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import sys
@@ -271,6 +272,79 @@ def _sampler(kind: str, seed: int, trials: int):
     return optuna.samplers.TPESampler(seed=seed, n_startup_trials=max(2, min(10, trials // 2)))
 
 
+# ----------------------------------------------------------------------------------------------- resuming
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+def fingerprint(study, cfg: dict) -> dict:
+    """What a trial's loss depends on, by the study-file key that sets it: the scene (as the study's set resolves it,
+    with the content of its soil preset file), the set, the parameter space and the objective (files by content).
+    Kept in the Optuna study's user attrs: a resume continues only the calibration it was recorded for."""
+    from ..scene import load_scene, scene_to_dict
+    from .study import overrides
+
+    scene = load_scene(study.scene, overrides(study, {}))
+    text = json.dumps(scene_to_dict(scene), sort_keys=True).encode()
+    if scene.soil.preset_file is not None:  # the trials' soil is its content, not its name
+        text += Path(scene.soil.preset_file).read_bytes()
+    spec = cfg["spec"]
+    fp = {"set": study.fixed, "scene": _sha(text),
+          "calibrate.parameters": {p.path: {"low": p.low, "high": p.high, "log": p.log} for p in cfg["params"]},
+          "calibrate.objective": spec["objective"]}
+    if spec["objective"] == "force":
+        f = spec["force"]
+        fp["calibrate.force"] = {"file": _sha(Path(f["file"]).read_bytes()), "column": f.get("column", "fx"),
+                                 "tool": f.get("tool"), "t": f.get("t"), "smooth_s": float(f.get("smooth_s", 0.2))}
+    elif spec["objective"] == "metric":
+        fp["calibrate.metric"] = {"name": spec["metric"]["name"], "target": float(spec["metric"]["target"])}
+    if spec["objective"] in ("terrain", "joints") or fp.get("calibrate.metric", {}).get("name", "").startswith(
+            "compare."):
+        fp["reference"] = {k: _sha(Path(v).read_bytes()) if k in ("terrain", "terrain_before", "joints") and
+                           Path(v).is_file() else v for k, v in (spec.get("reference") or {}).items()}
+    return json.loads(json.dumps(fp))  # as the journal gives it back (lists, not tuples)
+
+
+def _differences(old: dict, new: dict) -> list[str]:
+    out = []
+    for key in dict.fromkeys([*old, *new]):
+        a, b = old.get(key), new.get(key)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{key}.{k}" for k in dict.fromkeys([*a, *b]) if a.get(k) != b.get(k)]
+        else:
+            out.append(key)
+    return out
+
+
+def open_study(optuna, storage, study, cfg: dict, label: str):
+    """The Optuna study of this calibration in <out>'s journal: new, or the one a previous session left there when
+    it was recorded for the same scene, set, parameter space and objective (else UserError: its trials were
+    scored against something else and would be taken for this one's)."""
+    fp = fingerprint(study, cfg)
+    again = f"give another --out (or remove {study.out})"
+    for other in storage.get_all_studies():
+        if other.study_name != study.name:
+            raise UserError(f"{label}: out: {study.out} holds calibration {other.study_name!r}, not {study.name!r}; "
+                            f"{again}")
+    stored, n = None, 0
+    if storage.get_all_studies():  # read, not loaded: a refused resume leaves the journal as it was
+        sid = storage.get_study_id_from_name(study.name)
+        stored, n = storage.get_study_user_attrs(sid).get("fingerprint"), len(storage.get_all_trials(sid))
+    if stored is None and n:
+        raise UserError(f"{label}: out: {study.out} holds {n} trial(s) with no record of what they were scored "
+                        f"against (an older opera-taichi); {again}")
+    if stored is not None and stored != fp:
+        raise UserError(f"{label}: out: {study.out} holds trials of calibration {study.name!r} run with another "
+                        f"{', '.join(_differences(stored, fp))}; they are not mixed with this one's: {again}")
+    opt = optuna.create_study(study_name=study.name, storage=storage, direction="minimize", load_if_exists=True,
+                              sampler=_sampler(cfg["sampler"], cfg["seed"], cfg["trials"]))
+    if stored is None:
+        opt.set_user_attr("fingerprint", fp)
+    return opt
+
+
 # ----------------------------------------------------------------------------------------------- refinement
 def refine_point(rows: list[dict], params: list[Parameter]) -> dict | None:
     """Where a fit through the finished trials puts the optimum (None when it cannot say)."""
@@ -321,8 +395,7 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
     trials_dir = study.out / "trials"
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     storage = JournalStorage(JournalFileBackend(str(study.out / "optuna.journal")))
-    opt = optuna.create_study(study_name=study.name, storage=storage, direction="minimize", load_if_exists=True,
-                              sampler=_sampler(cfg["sampler"], cfg["seed"], cfg["trials"]))
+    opt = open_study(optuna, storage, study, cfg, label)
     dists = {p.path: optuna.distributions.FloatDistribution(p.low, p.high, log=p.log) for p in params}
     rows: dict[int, dict] = {}
     for tr in opt.trials:  # a previous session's trials: finished ones count; ones it left running are settled now
