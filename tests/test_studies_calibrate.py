@@ -4,6 +4,9 @@ One real calibration (a single 0.3 s trial of a coarse blade cut, about a hundre
 cluster) is run once for this file; every other check stops before a trial would start."""
 from __future__ import annotations
 
+import csv
+import dataclasses
+import json
 import shutil
 from pathlib import Path
 
@@ -101,6 +104,28 @@ def test_refine_by_default_with_too_few_trials_says_it_is_off(tmp_path, capsys, 
     with pytest.raises(_TrialStarted):
         calibrate(path, out=tmp_path / "out")
     assert "note: refine off: 3 trial(s), refining needs 4" in capsys.readouterr().err
+
+
+def test_written_preset_reproduces_the_best_trials_soil(fitted):
+    """The preset holds what the trial's soil.preset_file gave (friction, density), not only the fitted cohesion."""
+    import yaml
+
+    from opera_taichi.scene import load_scene
+    from opera_taichi.soil import resolve_scene_soil
+
+    folder, _ = fitted
+    result = json.loads((folder / "out" / "calibration.json").read_text())
+    preset = yaml.safe_load(Path(result["preset_file"]).read_text())
+    assert preset["friction_angle_deg"] == 38.5 and preset["density"] == 1700.0
+    with open(folder / "out" / "calibration.csv", newline="") as fh:
+        (row,) = list(csv.DictReader(fh))
+    run_dir = Path(row["run_dir"])
+    trial_bulk = json.loads((run_dir / "manifest.json").read_text())["soil"]["bulk"]
+    scene = load_scene(ROOT / "scenes" / "blade_cut.yaml", [f"soil.preset_file={result['preset_file']}"])
+    bulk = dataclasses.asdict(resolve_scene_soil(scene.soil))
+    assert bulk["cohesion"] == pytest.approx(result["best_parameters"]["soil.overrides.cohesion"])
+    assert {k: v for k, v in bulk.items() if k != "radius"} == \
+        pytest.approx({k: v for k, v in trial_bulk.items() if k != "radius"})
 
 
 @pytest.mark.parametrize("change, words", [

@@ -498,29 +498,29 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
 
 
 def write_preset(path: Path, study, best: dict, loss: float, cfg: dict, wall: float) -> Path:
-    """The soil preset file: the scene's preset and overrides with the calibrated values (bulk parameters), and a
-    `calibration` block saying where they came from (read by nothing; provenance)."""
+    """The soil preset file: the best trial's bulk soil (its preset, the values of the soil.preset_file its scene
+    used, the scene's overrides and the calibrated values; not the radius, a resolution a scene keeps), and a
+    `calibration` block saying where they came from (read by nothing; provenance). A scene with this file and no
+    overrides of its own resolves the best trial's soil (its radius aside)."""
     import yaml
 
     from ..scene import load_scene
-    from ..soil import PRESETS
+    from ..soil import read_preset_file, resolve_scene_soil
+    from .study import overrides
 
-    scene = load_scene(study.scene, [f"{k}={json.dumps(v)}" for k, v in study.fixed.items()])
-    soil = scene.soil
-    values = {}
-    overrides = {**dict(soil.overrides or {}), **{k.removeprefix("soil.overrides."): v for k, v in best.items()}}
-    for key, value in overrides.items():
-        if key == "radius":  # a resolution, not a soil property: a scene keeps its own
-            continue
-        values[key] = float(value)
-    for twin in ("friction_angle", "tool_friction_angle"):
-        if twin in values and twin + "_deg" in values:
-            values.pop(twin)  # the calibrated one is the _deg
-    data = {"preset": soil.preset, **values,
-            "calibration": {"study": str(study.source), "scene": str(study.scene), "objective": cfg["spec"]["objective"],
-                            "loss": float(loss), "trials": cfg["trials"], "radius_m": float(
-                                overrides.get("radius", PRESETS[soil.preset]["radius"])),
-                            "wall_time_s": round(wall, 1)}}
+    soil = load_scene(study.scene, overrides(study, best)).soil  # the best trial's own scene
+    base, values = (None, {}) if soil.preset_file is None else read_preset_file(soil.preset_file)
+    given = dict(soil.overrides or {})  # layered as resolve_scene_soil does: an override replaces the file's value
+    values = {**{k: v for k, v in values.items()  # in either unit
+                 if k not in given and (k[:-4] if k.endswith("_deg") else k + "_deg") not in given}, **given}
+    radius = values.pop("radius", None)  # a resolution, not a soil property: a scene keeps its own
+    radius = float(radius) if radius is not None else resolve_scene_soil(soil).radius
+    calibration = {"study": str(study.source), "scene": str(study.scene), "objective": cfg["spec"]["objective"],
+                   "loss": float(loss), "trials": cfg["trials"], "radius_m": radius, "wall_time_s": round(wall, 1)}
+    if soil.preset_file is not None:
+        calibration["built_on"] = str(soil.preset_file)
+    data = {"preset": base or soil.preset, **{k: None if v is None else float(v) for k, v in values.items()},
+            "calibration": calibration}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("# Soil preset written by `opera-taichi calibrate`; use it with soil.preset_file in a scene.\n"
                     + yaml.safe_dump(data, sort_keys=False))
