@@ -8,7 +8,7 @@ The study file's `calibrate` section (its scene, set, reference and out as for `
         soil.overrides.friction_angle_deg: {low: 24, high: 40}
       trials: 6
       sampler: tpe                                  # tpe | qmc | random
-      refine: true                                  # the last trial at the surrogate's optimum (see below)
+      refine: true                                  # the last trial at the surrogate's optimum (trials >= 4)
       objective: force                              # force | terrain | joints | metric
       force: {file: measured_force.csv, column: fx, tool: blade, t: [0.3, 1.5], smooth_s: 0.2}
       metric: {name: wrench.blade.fx.mean, target: 850.0}     # objective: metric
@@ -23,8 +23,12 @@ Objectives (the loss, smaller is better):
 Refinement: with `refine`, the last trial is not sampled but placed where a fit through the trials so far puts the
 optimum: for one parameter and an objective with a sign (force: the mean of the difference; metric), the zero of a
 line through the two trials that bracket the sign change; otherwise the vertex of a quadratic through the best
-trials (per parameter, kept inside the bounds). The result is a trial like any other: the best trial wins.
-Resumable: the trials live in <out>/optuna.journal (Optuna's journal storage); a rerun adds trials up to `trials`.
+trials (per parameter, kept inside the bounds). The result is a trial like any other: the best trial wins. It needs
+3 finished trials before it: `refine: true` with trials < 4 is refused; left unset, refine is then off.
+Resumable: the trials live in <out>/optuna.journal (Optuna's journal storage); a rerun adds trials up to `trials`,
+only to the same calibration (the fingerprint in the Optuna study's user attrs: set, scene, parameter space,
+objective); another is refused, naming what differs.
+The preset file reproduces the best trial's soil: the scene's preset file, overrides and the calibrated values.
 """
 from __future__ import annotations
 
