@@ -577,15 +577,16 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
     for line, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):
             raise CsvProblem(f"line {line}: expected {len(header)} fields, got {len(row)}")
-        try:
-            values = [float(c) for c in row]
-        except ValueError:
-            bad = next(c for c in row if not _is_float(c))
-            col = header[row.index(bad)]
-            raise CsvProblem(f"line {line}, column {col}: expected a number, got {bad.strip()!r}") from None
-        for col, v in enumerate(values):
-            if not math.isfinite(v) and (col == t_col or col in used):
-                raise CsvProblem(f"line {line}, column {header[col]}: expected a finite number, got {v}")
+        # only t and the joints' columns are read: a run's other columns may be empty (its .q_cmd in velocity mode)
+        values = {}
+        for col in [t_col, *sorted(used)]:
+            try:
+                values[col] = float(row[col])
+            except ValueError:
+                raise CsvProblem(f"line {line}, column {header[col]}: expected a number, got {row[col].strip()!r}") \
+                    from None
+            if not math.isfinite(values[col]):
+                raise CsvProblem(f"line {line}, column {header[col]}: expected a finite number, got {values[col]}")
         if times and not values[t_col] > times[-1]:
             raise CsvProblem(f"line {line}, column t: expected t > {_fmt(times[-1])} (strictly increasing), "
                              f"got {_fmt(values[t_col])}")
@@ -593,14 +594,6 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
         for joint, (col, scale) in joints.items():
             angles[joint].append(values[col] * scale)
     return times, angles
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-        return True
-    except ValueError:
-        return False
 
 
 class CsvMotion(_Model):

@@ -49,6 +49,20 @@ def test_csv_replay_with_degree_columns(tmp_path):
     assert set(prof.joints) == {"boom_joint", "arm_joint"}
 
 
+def test_a_runs_log_in_velocity_mode_replays_its_positions(tmp_path):
+    """A joint driven by speed commands (ROS, the sliders) has no position target: joints.csv leaves its .q_cmd
+    empty. The replay reads only t and the .q columns, so the log is a motion file all the same."""
+    path = tmp_path / "joints.csv"
+    path.write_text("t,boom_joint.q,boom_joint.qd,boom_joint.q_cmd,boom_joint.qd_cmd,boom_joint.effort\n"
+                    "0,0.10,0.0,,0.5,-1e5\n0.5,0.35,0.5,,0.5,-1e5\n")
+    prof = read_joint_csv(path, JOINTS)
+    assert prof.joints == ["boom_joint"]
+    assert prof.targets(0.25)["boom_joint"] == pytest.approx(0.225)
+    path.write_text("t,boom_joint.q,boom_joint.q_cmd\n0,0.10,\n0.5,,\n")
+    with pytest.raises(UserError, match=r"line 3, column boom_joint.q: expected a number"):
+        read_joint_csv(path, JOINTS)  # a joint's own column still has to be a number
+
+
 @pytest.mark.parametrize("text, words", [
     ("time,boom_joint\n0,1\n", "no `t` column"),
     ("t,boom_joint\n0,1\n0,2\n", "strictly increasing"),
