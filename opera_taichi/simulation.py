@@ -217,6 +217,8 @@ class Simulation:
     def observe(self) -> dict:
         """What a controller or an agent sees now, as numbers: time, each machine's joints (q, qd, effort,
         q_cmd), each tool's wrench (soil on tool, world frame) and the soil mass budget."""
+        if getattr(self, "_closed", False):
+            raise RuntimeError("the simulation was closed")
         out = {"t": self.t, "machines": {}, "tools": {}}
         for name, m in self.machines.items():
             q, qd, effort = m.joint_states()
@@ -281,8 +283,11 @@ def read_checkpoint_header(path) -> dict:
     try:
         with np.load(path, allow_pickle=False) as f:
             return json.loads(str(f["header"]))
-    except (OSError, KeyError, ValueError) as exc:
-        raise UserError(f"{path}: not a readable opera-taichi checkpoint ({exc})") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the checkpoint ({exc.strerror or exc})") from None
+    except (KeyError, ValueError):  # (NumPy's reason for another file, e.g. its pickle refusal, would mislead)
+        raise UserError(f"{path}: not an opera-taichi checkpoint (an .npz written by save_checkpoint or "
+                        f"run --checkpoint-every)") from None
 
 
 def load_checkpoint(path, model: Model, soil) -> tuple[State, dict]:

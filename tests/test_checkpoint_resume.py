@@ -93,7 +93,7 @@ def test_resume_refuses_a_finished_run_and_a_foreign_folder(alone_and_resumed, t
     assert len(err) == 1 and "not a run folder" in err[0]
 
 
-def test_a_checkpoint_of_another_scene_or_solver_version_is_refused(alone_and_resumed):
+def test_a_checkpoint_of_another_scene_or_solver_version_is_refused(alone_and_resumed, tmp_path):
     from types import SimpleNamespace
 
     from opera_taichi.errors import UserError
@@ -114,3 +114,10 @@ def test_a_checkpoint_of_another_scene_or_solver_version_is_refused(alone_and_re
     newer = SimpleNamespace(name="dem", version=dem.version + 1)
     with pytest.raises(UserError, match="solver version"):
         load_checkpoint(ckpt, build_model(load_scene(SCENE, sets)), newer)
+    # a file that is not a checkpoint (a script, a pickle) or is missing: one line saying so, not NumPy's reason
+    script = tmp_path / "not_a_checkpoint.py"
+    script.write_text("print('hello')\n")
+    with pytest.raises(UserError, match=r"not_a_checkpoint.py: not an opera-taichi checkpoint \(an .npz"):
+        load_checkpoint(script, build_model(load_scene(SCENE, sets)), dem)
+    with pytest.raises(UserError, match="cannot read the checkpoint"):
+        load_checkpoint(tmp_path / "missing.ckpt.npz", build_model(load_scene(SCENE, sets)), dem)

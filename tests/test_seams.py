@@ -208,3 +208,12 @@ def test_run_scene_takes_a_function_as_its_controller_and_refuses_anything_else_
     with pytest.raises(TypeError, match="controller: a Controller"):
         ot.run_scene(scene, out_dir=tmp_path / "bad", quiet=True, controller=42)
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_closed_simulation_neither_steps_nor_observes():
+    sim = _excavator()
+    sim.step()
+    sim.close()
+    for call in (sim.step, sim.observe):
+        with pytest.raises(RuntimeError, match="closed"):
+            call()
