@@ -6,7 +6,6 @@ Exit codes: 0 done, 1 a bug (traceback), 2 bad input (one line), 3 the simulatio
 from __future__ import annotations
 
 import argparse
-import contextlib
 import signal
 import sys
 import threading
@@ -15,33 +14,18 @@ from pathlib import Path
 
 from . import __version__
 from .errors import DivergenceError, Terminated, UserError
-from .scene import load_scene
+from .scene import load_scene, naming_the_scene
 
 
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
-@contextlib.contextmanager
-def _naming_the_scene(path):
-    """A scene key found wrong after loading (building the model, the machine, the soil) is reported with the
-    scene file, as load_scene reports its own errors."""
-    from .scene import Scene
-
-    try:
-        yield
-    except UserError as exc:
-        section = str(exc).split(":", 1)[0].split(".", 1)[0]
-        if section in Scene.model_fields:
-            raise UserError(f"{path}: {exc}") from None
-        raise
-
-
 def _cmd_validate(args) -> int:
     from . import model
 
     scene = load_scene(args.scene, args.set)
-    with _naming_the_scene(args.scene):
+    with naming_the_scene(args.scene):
         checked = model.check_scene(scene)
         if scene.bridge is not None:  # topic names and rate keys are checked against the machines
             from .ros.topics import topic_table
@@ -85,7 +69,7 @@ def _cmd_run(args) -> int:
             scene.sim.arch = args.arch
         if args.replay:
             scene.output.replay = True
-        with _naming_the_scene(args.scene):
+        with naming_the_scene(args.scene):
             controller, extra = _bridge_parts(scene, args)
             controller, extra = _view_parts(scene, args, controller, extra)
             result = runner.run_scene(scene, out_dir=args.out, arch=scene.sim.arch, quiet=args.quiet,

@@ -5,6 +5,7 @@ docs/scene_reference.md is generated from them: `python -m opera_taichi.scene > 
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import inspect
 import json
@@ -1283,3 +1284,16 @@ def scene_reference_markdown() -> str:
 
 if __name__ == "__main__":
     print(scene_reference_markdown(), end="")
+
+
+@contextlib.contextmanager
+def naming_the_scene(path):
+    """A scene key found wrong after loading (building the model, the machine, the soil) is reported with the
+    scene file, as load_scene reports its own errors."""
+    try:
+        yield
+    except UserError as exc:
+        section = str(exc).split(":", 1)[0].split(".", 1)[0]
+        if section in Scene.model_fields:
+            raise UserError(f"{path}: {exc}") from None
+        raise

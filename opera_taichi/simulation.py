@@ -10,6 +10,7 @@ Controllers give the Control; observers read the state after the step (runner.py
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -86,13 +87,16 @@ class Simulation:
                    quiet: bool = True) -> "Simulation":
         """A simulation of a scene file (or a loaded Scene), with `--set`-style overrides given as a dict
         {"soil.overrides.radius": 0.12} or a list of "key.path=value" strings."""
-        from .scene import load_scene
+        from .scene import load_scene, naming_the_scene
 
+        path = None
         if not hasattr(scene, "sim"):
-            scene = load_scene(scene, overrides or ())
+            path, scene = scene, load_scene(scene, overrides or ())
         elif overrides:
             raise ValueError("overrides go with a scene file path; a loaded Scene already has its values")
-        sim = cls(build_model(scene), arch=arch or scene.sim.arch, quiet=quiet, spin_wait=scene.sim.spin_wait)
+        with naming_the_scene(path) if path is not None else contextlib.nullcontext():
+            model = build_model(scene)
+        sim = cls(model, arch=arch or scene.sim.arch, quiet=quiet, spin_wait=scene.sim.spin_wait)
         sim.scene = scene
         return sim
 

@@ -217,3 +217,13 @@ def test_a_closed_simulation_neither_steps_nor_observes():
     for call in (sim.step, sim.observe):
         with pytest.raises(RuntimeError, match="closed"):
             call()
+
+
+def test_from_scene_names_the_scene_file_for_a_key_found_wrong_when_the_model_is_built():
+    """A misspelt soil override passes the scene's schema (overrides are free keys) and is found when the soil is
+    resolved: the error names the scene file, as `run` does and as load_scene does for its own keys."""
+    from opera_taichi.errors import UserError
+
+    with pytest.raises(UserError, match=r"zx120_excavation.yaml: soil.overrides.raduis: unknown key \(did you "
+                                           r"mean 'radius'"):
+        ot.Simulation.from_scene(EXCAVATION, {"soil.overrides.raduis": 0.1})
