@@ -236,8 +236,9 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
             continue
         q = initial_q[j] = float(cfg.initial_joints[j])
         if not lo - 1e-9 <= q <= hi + 1e-9:
-            raise UserError(f"{key}.initial_joints.{j}: {q:.4f} rad is outside the joint's limits "
-                            f"[{lo:.4f}, {hi:.4f}] rad")
+            raise UserError(f"{key}.initial_joints.{j} (or initial_joints_deg): {q:.4f} rad ({math.degrees(q):.1f} "
+                            f"deg) is outside the joint's limits [{lo:.4f}, {hi:.4f}] rad ([{math.degrees(lo):.1f}, "
+                            f"{math.degrees(hi):.1f}] deg)")
     kin = Kinematics(desc)
     name = getattr(cfg, "name", None) or desc.name
     return MachineModel(name=name, description=desc, kinematics=kin,

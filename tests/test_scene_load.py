@@ -230,8 +230,14 @@ def test_a_joint_without_an_initial_angle_starts_at_zero_or_its_nearest_limit(tm
     assert machine.initial_q["swing_joint"] == 0.0 and machine.initial_q["boom_joint"] == -0.4
     # an angle given outside the limits is still refused, naming the key
     bad = load_scene(_write(tmp_path, "machine: {urdf: zx120, initial_joints: {arm_joint: 0.0}}\n", "bad.yaml"))
-    with pytest.raises(UserError, match=r"^machine.initial_joints.arm_joint: 0.0000 rad is outside the joint's limits"):
+    with pytest.raises(UserError, match=r"^machine.initial_joints.arm_joint \(or initial_joints_deg\): 0.0000 rad "
+                                        r"\(0.0 deg\) is outside the joint's limits"):
         build_model(bad)
+    # given in degrees, the message gives degrees too
+    deg = load_scene(_write(tmp_path, "machine: {urdf: zx120, initial_joints_deg: {boom_joint: 500}}\n", "deg.yaml"))
+    with pytest.raises(UserError, match=r"initial_joints_deg\): 8.7266 rad \(500.0 deg\) is outside the joint's "
+                                        r"limits \[.*\] rad \(\[-70.0, 44.0\] deg\)"):
+        build_model(deg)
 
 
 def test_overrides_as_a_mapping_or_as_set_strings_load_the_same_scene(tmp_path, robot):
