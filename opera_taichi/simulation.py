@@ -56,6 +56,7 @@ class Simulation:
         self.soil = None
         self._spin = None  # the spin-wait helpers (sim.spin_wait), shared by the process
         self.tool_wrench = np.zeros((0, 6))
+        self._hull_planes = None  # each soil tool's convex hull as half-spaces (soil_in_tools)
         self._bound: list = []
         if model.soil is not None:
             from .backend import init_taichi
@@ -233,6 +234,19 @@ class Simulation:
         if self.soil is not None:
             out["soil_mass"] = self.soil.mass_budget()
         return out
+
+    def soil_in_tools(self) -> dict[str, float]:
+        """Soil mass (kg) whose grain centres lie inside each soil tool's convex hull (a bucket's struck volume),
+        by tool name: what soil_mass.csv's `in_<tool>_kg`, summary.json's `soil_held_kg` and the gym env's
+        `bucket_mass` read. Soil heaped above the strike plane is not counted."""
+        from .observers import hull_halfspaces, mass_in_tools
+
+        names = [b.name for b in self.model.bindings]
+        if self.soil is None or not names:
+            return {name: 0.0 for name in names}
+        if self._hull_planes is None:
+            self._hull_planes = [hull_halfspaces(b.mesh) for b in self.model.bindings]
+        return dict(zip(names, mass_in_tools(self, self._hull_planes)))
 
     def tool_pose(self, i: int):
         """Pose and twist of soil tool i (binding order) now."""

@@ -227,3 +227,21 @@ def test_from_scene_names_the_scene_file_for_a_key_found_wrong_when_the_model_is
     with pytest.raises(UserError, match=r"zx120_excavation.yaml: soil.overrides.raduis: unknown key \(did you "
                                            r"mean 'radius'"):
         ot.Simulation.from_scene(EXCAVATION, {"soil.overrides.raduis": 0.1})
+
+
+def test_soil_in_tools_weighs_the_grains_inside_the_buckets_hull_and_no_others():
+    """Grains put inside the bucket's struck volume (its hull's centroid, in the world) count with their masses;
+    a grain beside the bucket does not."""
+    from opera_taichi.geometry import quat_to_matrix
+
+    sim = _excavator()
+    assert sim.soil_in_tools() == {"bucket_link": 0.0}  # in the air over the bed
+    p, q, _, _ = sim.tool_pose(0)
+    hull = sim.model.bindings[0].mesh.convex_hull
+    centre = quat_to_matrix(q) @ hull.centroid + p
+    added = np.array([centre, centre + [0.0, 0.0, 0.1], centre + [0.0, 3.0, 0.0]])
+    sim.soil.add_particles(added, radii=[0.05] * 3)
+    parts = sim.soil.particles(("positions", "masses"))  # (in the solver's order, not the order added)
+    masses = [float(parts["masses"][np.argmin(np.linalg.norm(parts["positions"] - x, axis=1))]) for x in added]
+    assert min(masses) > 0.0
+    assert sim.soil_in_tools()["bucket_link"] == pytest.approx(masses[0] + masses[1], rel=1e-12)
