@@ -1,7 +1,7 @@
 """run_scene: drive a scene to its end and write its run folder. The whole loop is
 
     while sim.step_count < n_steps:
-        sim.step(controller.control(sim, t_next))
+        sim.step(controller.control(sim, sim.t_next))
         bus.after_step(sim)
 
 controllers in, observers out: the files of the run folder, the manifest's heartbeat, the progress bar,
@@ -319,9 +319,8 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
             t_start = sim.t
             wall_start = time.perf_counter()
             bus.start(sim, run)
-            dt = model.dt
             while sim.step_count < n_steps:
-                sim.step(controller.control(sim, (sim.step_count + 1) * dt))
+                sim.step(controller.control(sim, sim.t_next))
                 bus.after_step(sim)
     except DivergenceError as exc:
         status, message = "diverged", str(exc)

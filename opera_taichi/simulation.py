@@ -107,6 +107,12 @@ class Simulation:
         return list(self.machines)
 
     @property
+    def t_next(self) -> float:
+        """The time the next step ends at, as step() computes it ((steps + 1) dt, not t + dt, which rounds
+        differently): the t a controller is asked for, `controller.control(sim, sim.t_next)`."""
+        return (self.step_count + 1) * self.model.dt
+
+    @property
     def spin_wait_helpers(self) -> int:
         """How many processes keep the other cores running while this simulation steps (sim.spin_wait)."""
         return len(self._spin.processes) if self._spin is not None else 0
@@ -156,7 +162,7 @@ class Simulation:
             raise RuntimeError("the simulation was closed")
         if self._spin is not None:
             self._spin.touch()
-        t_next = (self.step_count + 1) * self.model.dt
+        t_next = self.t_next
         self.apply(as_control(control, self.machine_names, t_next))
         if self.world is not None:
             for i, (machine, link) in enumerate(self._bound):

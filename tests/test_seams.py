@@ -245,3 +245,4 @@ def test_soil_in_tools_weighs_the_grains_inside_the_buckets_hull_and_no_others()
     masses = [float(parts["masses"][np.argmin(np.linalg.norm(parts["positions"] - x, axis=1))]) for x in added]
     assert min(masses) > 0.0
     assert sim.soil_in_tools()["bucket_link"] == pytest.approx(masses[0] + masses[1], rel=1e-12)
+
