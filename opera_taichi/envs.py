@@ -178,6 +178,9 @@ class ZX120DigEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         if self._diverged is not None:
             raise RuntimeError(f"the simulation diverged ({self._diverged}); call reset()")
+        if self._steps >= self.max_steps:
+            raise RuntimeError(f"the episode was truncated at max_episode_seconds = {self.max_episode_seconds:g} s; "
+                               f"call reset()")
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (len(self.joint_names),) or not np.all(np.isfinite(action)):
             raise ValueError(f"action: expected {len(self.joint_names)} finite joint velocities (rad/s), got {action}")
@@ -189,7 +192,7 @@ class ZX120DigEnv(gym.Env):
         prev = self._obs
         try:
             for _ in range(self.n_sub):
-                control.t = (self.sim.step_count + 1) * self.dt
+                control.t = self.sim.t_next
                 self.sim.step(control)
                 _, qd, effort = machine.joint_states()
                 energy += float(np.sum(np.abs(effort * qd))) * self.dt

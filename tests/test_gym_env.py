@@ -168,6 +168,10 @@ def test_truncated_at_max_episode_seconds():
         flags = [env.step(np.zeros(4, np.float32))[3] for _ in range(5)]
         assert flags == [False, False, False, False, True]
         assert env.unwrapped.sim.t == pytest.approx(0.1)
+        with pytest.raises(RuntimeError, match="truncated at max_episode_seconds = 0.1 s; call reset"):
+            env.step(np.zeros(4, np.float32))  # the episode is over: no step beyond it
+        env.reset(seed=0)
+        assert env.step(np.zeros(4, np.float32))[3] is False
     finally:
         env.close()
 
