@@ -118,7 +118,8 @@ class LiveView(ThreadedObserver):
                 self.view.refresh()
 
         if self.teleop:
-            with gui.add_folder("Teleop (joint targets, deg)"):
+            # right under Run, above View and Plots: on a laptop's screen the panel would hide it below the plots
+            with gui.add_folder("Teleop (joint targets, deg)", order=self.view.controls.order + 0.5):
                 for m in self.view.info.machines:
                     q, _, _ = sim.machines[m.name].joint_states()
                     for j, (lo, hi), value in zip(m.joints, m.limits, q):
