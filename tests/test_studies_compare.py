@@ -459,3 +459,38 @@ def test_a_fit_gone_wrong_is_flagged(tmp_path, capsys):
     assert placement_error(res["transform"]) > 0.5  # it did go wrong
     assert any("the fitted placement looks wrong" in w for w in res["warnings"])
     assert "warning: --terrain: the fitted placement looks wrong" in capsys.readouterr().err
+
+
+def test_joint_logs_in_other_units_a_clock_time_and_a_still_noisy_joint(tmp_path, capsys):
+    """Field logs as they come: degrees under radian names are refused, clock (epoch) time is compared from its
+    first sample, t in milliseconds is warned of, and a joint that stands still under sensor noise gets no rate
+    ratio or lag (its noise's would pull the medians: 0.2 deg of noise read a ratio of 1e-4 and a lag of 1.5 s)."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"swing_joint": np.zeros_like(t), "boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    rng = np.random.default_rng(0)
+
+    def log(name, t_log, scale=1.0, noise=0.0):
+        path = tmp_path / name
+        with open(path, "w") as fh:
+            fh.write("t,swing_joint,boom_joint,arm_joint\n")
+            for ti, tl in zip(np.arange(0.0, 20.0, 0.02), t_log):
+                vals = [0.0, 0.4 * math.sin(0.5 * ti), 1.0 + 0.3 * math.cos(0.4 * ti)]
+                vals = [scale * v + noise * rng.standard_normal() for v in vals]
+                fh.write(f"{tl:.6f}," + ",".join(f"{v:.6f}" for v in vals) + "\n")
+        return path
+
+    steps = np.arange(0.0, 20.0, 0.02)
+    code, err = _cli([run, "--joints", log("deg.csv", steps, scale=math.degrees(1.0)), "--out", tmp_path / "c1"],
+                     capsys)
+    assert code == 2 and "\n" not in err and "a log in degrees? name its column" in err
+    clock = cmp.compare(run, joints=log("clock.csv", steps + 1.76e9), out=tmp_path / "c2")
+    assert clock["joints_rmse_rad"] < 1e-5 and clock["joints_lag_s"] == 0.0
+    noisy = cmp.compare(run, joints=log("noisy.csv", steps, noise=math.radians(0.2)), out=tmp_path / "c3")
+    swing = noisy["joints"]["swing_joint"]
+    assert not swing["moving"] and swing["rate_ratio"] is None and swing["lag_s"] is None
+    assert noisy["joints"]["boom_joint"]["moving"] and noisy["joints_lag_s"] == 0.0
+    assert noisy["joints_rate_ratio"] == pytest.approx(1.0, abs=0.1)
+    capsys.readouterr()
+    ms = cmp.compare(run, joints=log("ms.csv", steps * 1000.0), out=tmp_path / "c4")
+    assert any("milliseconds" in w for w in ms["warnings"]) and "milliseconds" in capsys.readouterr().err

@@ -37,9 +37,13 @@ from . import scan as scans
 COMPARISON_FILE = "comparison.json"
 PROFILE_FILE = "profile.csv"
 JOINT_DT = 0.01            # s, resampling step of joint profiles
-RATE_SMOOTHING_S = 0.1     # s, moving average before differentiating joint angles
+RATE_SMOOTHING_S = 0.3     # s: joint rates are differences over this of angles averaged over it (a 0.1 s average
+                           # differentiated per sample read 0.2 deg of sensor noise as 15% more speed)
 MAX_LAG_S = 5.0            # s, the largest lag searched
 STILL_RATE = 1e-3          # rad/s: a reference joint this slow (90th percentile) stands still: no rate ratio
+STILL_RANGE = math.radians(2.0)  # rad: a joint whose log moves less than this (5-95th percentile) stands still: its
+                                 # rate and lag would be its sensor noise's (0.2 deg of noise read a ratio of 1e-4)
+CLOCK_TIME_S = 1e6         # s: a CSV log whose t starts later than this (11.6 days) holds clock time (epoch seconds)
 FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
 MAX_VERTICAL_OFFSET_M = 2.0  # a placed scan this far above/below the run's terrain has not been placed
 MIN_DIG_COVERAGE = 0.5     # a reference covering less of the dig area than this is refused...
@@ -310,7 +314,10 @@ def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, n
         raise UserError(f"{key}: {path}: cannot read ({exc.strerror})") from None
     if not angles:
         raise UserError(f"{key}: {path}: no joint columns besides t")
-    return np.asarray(times, float), {j: np.asarray(v, float) for j, v in angles.items()}
+    t = np.asarray(times, float)
+    if t[0] > CLOCK_TIME_S:  # clock time: compared from its first sample, as a bag's times are
+        t = t - t[0]
+    return t, {j: np.asarray(v, float) for j, v in angles.items()}
 
 
 def _read_bag(path: Path, key: str):
@@ -370,6 +377,15 @@ def _smooth(v: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(np.pad(v, (n // 2, n - 1 - n // 2), mode="edge"), np.ones(n) / n, mode="valid")
 
 
+def _rate(v: np.ndarray, n: int) -> np.ndarray:
+    """|dv/dt| as the difference over n samples of v averaged over n samples (the noise of a per-sample
+    derivative is what it measures otherwise)."""
+    sm = _smooth(v, n)
+    if len(sm) <= n:
+        return np.abs(np.gradient(sm, JOINT_DT))
+    return np.abs(sm[n:] - sm[:-n]) / (n * JOINT_DT)
+
+
 def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
     """The shift k (samples) with a[i + k] best matching b[i]: the largest correlation coefficient over the
     overlapping parts (normalised per shift, so a short overlap is not favoured or penalised). k > 0: a is late."""
@@ -385,16 +401,30 @@ def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
     return lag
 
 
-def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str) -> tuple[dict, dict]:
-    """Per-joint rmse, lag and rate ratio on the common time span; the arrays for the figure."""
+def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
+                     warnings: list | None = None) -> tuple[dict, dict]:
+    """Per-joint rmse, lag and rate ratio on the common time span; the arrays for the figure. A log in other units
+    than the run's (degrees under radian names) is refused; one whose time looks like milliseconds is warned of."""
     joints = [j for j in run if j in ref]
     if not joints:
         raise UserError(f"--joints: {ref_label} names no joint of the run (run: {', '.join(run)}; log: "
                         f"{', '.join(ref)})")
+    for j in joints:
+        # a log in degrees under radian names reads about 57 x the run's angles, beyond a full turn
+        big, run_big = float(np.max(np.abs(ref[j]))), float(np.max(np.abs(run[j])))
+        if big > max(2 * math.pi, 3 * run_big + 1.0):
+            raise UserError(f"--joints: {ref_label}: {j} reaches {big:.4g} rad (the run at most {run_big:.3g} rad): "
+                            f"a log in degrees? name its column {j}_deg")
     t0, t1 = max(t_run[0], t_ref[0]), min(t_run[-1], t_ref[-1])
     if not t1 - t0 > 2 * JOINT_DT:
-        raise UserError(f"--joints: {ref_label} spans t {t_ref[0]:.3g}..{t_ref[-1]:.3g} s, the run "
-                        f"{t_run[0]:.3g}..{t_run[-1]:.3g} s: no common time span")
+        raise UserError(f"--joints: {ref_label} spans t {t_ref[0]:.6g}..{t_ref[-1]:.6g} s, the run "
+                        f"{t_run[0]:.6g}..{t_run[-1]:.6g} s: no common time span (the log's t is compared as "
+                        f"written, in seconds)")
+    span_ref, span_run = t_ref[-1] - t_ref[0], t_run[-1] - t_run[0]
+    if warnings is not None and span_run > 0 and span_ref > 100 * span_run and np.median(np.diff(t_ref)) > 0.5:
+        _warn(warnings, f"--joints: {ref_label} spans {span_ref:.4g} s against the run's {span_run:.4g} s, with a "
+                        f"median step of {np.median(np.diff(t_ref)):.3g} s: is its t in milliseconds? Only its first "
+                        f"{t1 - t0:.4g} s are compared")
     t = np.arange(t0, t1 + 1e-12, JOINT_DT)
     n_smooth = max(1, int(round(RATE_SMOOTHING_S / JOINT_DT)))
     max_lag = int(min(MAX_LAG_S, (t1 - t0) / 3) / JOINT_DT)
@@ -403,19 +433,20 @@ def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str) -> tupl
     for j in joints:
         a = np.interp(t, t_run, run[j])
         b = np.interp(t, t_ref, ref[j])
-        lag = best_lag(a, b, max_lag)
-        ra = np.abs(np.gradient(_smooth(a, n_smooth), JOINT_DT))
-        rb = np.abs(np.gradient(_smooth(b, n_smooth), JOINT_DT))
+        moving = float(np.percentile(b, 95) - np.percentile(b, 5)) > STILL_RANGE
+        lag = best_lag(a, b, max_lag) if moving else None
+        ra, rb = _rate(a, n_smooth), _rate(b, n_smooth)
         pa, pb = float(np.percentile(ra, 90)), float(np.percentile(rb, 90))
         per[j] = {"rmse_rad": float(np.sqrt(np.mean((a - b) ** 2))), "rmse_deg": math.degrees(
-            float(np.sqrt(np.mean((a - b) ** 2)))), "lag_s": lag * JOINT_DT,
-            "rate_ratio": pa / pb if pb > STILL_RATE else None,
+            float(np.sqrt(np.mean((a - b) ** 2)))), "lag_s": None if lag is None else lag * JOINT_DT,
+            "rate_ratio": pa / pb if moving and pb > STILL_RATE else None, "moving": moving,
             "run_rate_p90_rad_s": pa, "reference_rate_p90_rad_s": pb}
         arrays["joints"][j] = (a, b)
     ratios = [v["rate_ratio"] for v in per.values() if v["rate_ratio"] is not None]
+    lags = [v["lag_s"] for v in per.values() if v["lag_s"] is not None]
     out = {"joints": per, "joints_common_span_s": [float(t0), float(t1)],
            "joints_rmse_rad": float(np.mean([v["rmse_rad"] for v in per.values()])),
-           "joints_lag_s": float(np.median([v["lag_s"] for v in per.values()])),
+           "joints_lag_s": float(np.median(lags)) if lags else None,
            "joints_rate_ratio": float(np.median(ratios)) if ratios else None}
     return out, arrays
 
@@ -508,7 +539,7 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
             t_ref, q_ref = run_joints(Path(against), "--against")
             ref_label = f"run {Path(against).name}"
         t_run, q_run = run_joints(run_dir)
-        block, figs["joints"] = joint_comparison(t_run, q_run, t_ref, q_ref, ref_label)
+        block, figs["joints"] = joint_comparison(t_run, q_run, t_ref, q_ref, ref_label, warnings)
         figs["joints"]["label"] = ref_label
         result.update(block)
     if warnings:
