@@ -1,5 +1,6 @@
 """study and calibrate on a real Dask LocalCluster (2 worker processes, each its own Taichi runtime): a 4-point
-friction study of a small blade cut (resumed: finished points are kept; a failed point is a row, not the end), and a
+friction study of a small blade cut (resumed: finished simulations are kept and measured again for the study file as
+it is now; a point that fails, in its simulation or in its comparison, is a row, not the end), and a
 6-trial calibration that recovers the friction angle of its own reference run from the run's draft-force curve.
 
 Each run is a 1.2 m x 0.4 m x 0.35 m sand bed of 4 cm grains (about 2,400 particles) cut 0.2 m deep for 1 s."""
@@ -74,24 +75,46 @@ def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, capsys):
     assert (out / "study.png").stat().st_size > 10_000
     for r in rows:  # each a real run folder, its row beside it
         assert json.loads((Path(r["run_dir"]) / "manifest.json").read_text())["status"] == "done"
-    # resume: one more point, which fails; the four finished points are not run again
+    # resume with one more point, a new metric and a reference: the four finished simulations are kept (not run
+    # again) and measured again for this file's metrics; the comparison fails (a scan far from the run), which
+    # costs no simulation: each row says why, and its simulation stays finished
+    (study_dir / "far.xyz").write_text("x y z\n" + "".join(f"{500 + 0.1 * i:.1f} {0.1 * j - 0.2:.1f} 0\n"
+                                                          for i in range(16) for j in range(5)))
     spec = (study_dir / "friction.yaml").read_text()
-    spec = spec.replace(f"{TRUE_FRICTION_DEG:g}, 35]", f"{TRUE_FRICTION_DEG:g}, 35, 95]")
-    (study_dir / "more.yaml").write_text(spec)
-    stamps = {r["point"]: (Path(r["run_dir"]) / "point.json").stat().st_mtime_ns for r in rows}
-    code = main(["study", str(study_dir / "more.yaml"), "--workers", "2", "--out", str(out)])
-    assert code == 0
+    spec = spec.replace(f"{TRUE_FRICTION_DEG:g}, 35]", f"{TRUE_FRICTION_DEG:g}, 35, 38]")
+    spec = spec.replace("metrics: [", "metrics: [compare.terrain_rmse_m, ")
+    (study_dir / "more.yaml").write_text(spec + "reference: {terrain: far.xyz}\n")
+    simulated = {r["point"]: (Path(r["run_dir"]) / "manifest.json").stat().st_mtime_ns for r in rows}
+    code = main(["study", str(study_dir / "more.yaml"), "--workers", "1", "--out", str(out)])
+    assert code == 1  # no point could be measured
     err = capsys.readouterr().err
-    assert "5 points, 4 finished before, 1 to run" in err
+    assert "5 points, 4 finished before, 1 to run" in err and "error: study: all 5 points failed" in err
     rows2 = _rows(out / "study.csv")
-    assert len(rows2) == 5 and [r["status"] for r in rows2[:4]] == ["done"] * 4
-    assert rows2[4]["status"] == "bad input" and "friction_angle" in rows2[4]["error"]  # 95 deg: not an angle
+    assert [r["status"] for r in rows2] == ["bad input"] * 5
+    assert all(r["error"].startswith("compare.terrain_rmse_m: reference.terrain: far.xyz is far from the run")
+               for r in rows2), rows2[0]["error"]
+    assert [float(r["draft_N"]) for r in rows2[:4]] == pytest.approx(draft)  # the other metrics still measured
     for r in rows2[:4]:
-        assert (Path(r["run_dir"]) / "point.json").stat().st_mtime_ns == stamps[r["point"]]
-    # a study none of whose points finished exits 1 (its table says why): here the bed of the 32 deg point, from the
-    # cache, is stopped by a speed limit its settled grains exceed at once
-    spec = spec.replace(f"[26, 29, {TRUE_FRICTION_DEG:g}, 35, 95]",
-                        f"[{TRUE_FRICTION_DEG:g}]\n  soil.max_speed: [1e-6]")
+        assert (Path(r["run_dir"]) / "manifest.json").stat().st_mtime_ns == simulated[r["point"]]
+    simulated[rows2[4]["point"]] = (Path(rows2[4]["run_dir"]) / "manifest.json").stat().st_mtime_ns
+    # the reference fixed (the 26 deg run itself): all five measured again, none simulated again
+    (study_dir / "fixed.yaml").write_text(spec + f"reference: {{against: {rows[0]['run_dir']}}}\n")
+    assert main(["study", str(study_dir / "fixed.yaml"), "--out", str(out)]) == 0  # no cluster: nothing to run
+    assert "5 points, 5 finished before, 0 to run" in capsys.readouterr().err
+    rows3 = _rows(out / "study.csv")
+    assert [r["status"] for r in rows3] == ["done"] * 5
+    rmse = [float(r["compare.terrain_rmse_m"]) for r in rows3]
+    assert rmse[0] == 0.0 and min(rmse[1:]) > 0.0  # against itself, and against the others
+    for r in rows3:
+        assert (Path(r["run_dir"]) / "manifest.json").stat().st_mtime_ns == simulated[r["point"]]
+        assert json.loads((Path(r["run_dir"]) / "point.json").read_text())["row"]["status"] == "done"
+
+
+def test_a_study_none_of_whose_points_finished_exits_1(study_dir, capsys):
+    # its table says why: here the bed of the 32 deg point, from the cache, is stopped by a speed limit its settled
+    # grains exceed at once
+    spec = (study_dir / "friction.yaml").read_text().replace(f"[26, 29, {TRUE_FRICTION_DEG:g}, 35]",
+                                                              f"[{TRUE_FRICTION_DEG:g}]\n  soil.max_speed: [1e-6]")
     (study_dir / "none.yaml").write_text(spec.replace("name: friction", "name: none"))
     code = main(["study", str(study_dir / "none.yaml"), "--workers", "1", "--out", str(study_dir / "none")])
     assert code == 1

@@ -18,9 +18,12 @@ A study file (paths relative to it; every key checked, errors one line naming th
     out: studies/blade_depth           # the study folder (relative to the current directory); --out overrides
 
 The study folder holds runs/<point>/ (a run folder each, with point.json: the point's row), study.csv,
-study.parquet and study.png (each metric against each parameter). Finished points (point.json with status done and
-the same overrides) are kept and skipped when the study runs again; failed ones are run again. A failed run is a row
-with its status (bad input, diverged, error) and its one-line error; it never stops the study.
+study.parquet and study.png (each metric against each parameter). When the study runs again, a point whose
+simulation finished (point.json with the same overrides, manifest.json status done) is not simulated again, but its
+metrics and comparison are measured again from its run folder for the study file as it is now (metrics or reference
+changed); points whose simulation failed are run again. A failed run is a row with its status (bad input, diverged,
+error) and its one-line error; it never stops the study. A metric that cannot be measured (a comparison that fails)
+makes its row failed too, but keeps the simulation.
 
 Metrics (columns of the table):
 - `manifest.<key>[.<key>...]`, `summary.<key>...`, `comparison.<key>`: values from manifest.json, summary.json,
@@ -364,8 +367,10 @@ def csv_metric(run_dir: Path, file: str, column: str, stat: str, where: dict | N
     return _stat(np.asarray(cols[column], float)[keep], stat)
 
 
-def collect_metrics(run_dir: Path, metrics: list, reference: dict) -> dict:
-    """The metrics of a finished run folder (None where a file or key is missing)."""
+def collect_metrics(run_dir: Path, metrics: list, reference: dict, errors: dict | None = None) -> dict:
+    """The metrics of a finished run folder (None where a file or key is missing). A metric that cannot be measured
+    (a comparison that fails, an unreadable file) raises, or with `errors` given is None and its exception goes
+    into errors[name] (the other metrics are still measured)."""
     run_dir = Path(run_dir)
     out = {}
     cache: dict = {}
@@ -378,39 +383,88 @@ def collect_metrics(run_dir: Path, metrics: list, reference: dict) -> dict:
                 cache[name] = None
         return cache[name]
 
-    for m in metrics:
-        if isinstance(m, dict):
-            out[m["name"]] = csv_metric(run_dir, m["file"], m["column"], m.get("stat", "mean"), m.get("where"),
-                                        m.get("t"))
-            continue
-        head, _, rest = m.partition(".")
-        if head == "manifest":
-            out[m] = _dig(json_file("manifest.json"), rest.split("."))
-        elif head == "summary":
-            out[m] = _dig(json_file("summary.json"), rest.split("."))
-        elif head == "compare":
-            if "compare" not in cache:
-                from .compare import compare
+    def comparison():
+        if "compare" not in cache:  # once for all compare.* metrics, a failure included
+            from .compare import compare
 
+            try:
                 cache["compare"] = compare(run_dir, terrain=reference.get("terrain"),
                                            terrain_before=reference.get("terrain_before"),
                                            joints=reference.get("joints"), against=reference.get("against"),
                                            transform=reference.get("transform"),
                                            fit=reference.get("fit_transform"), figures=False)
-            out[m] = _dig(cache["compare"], rest.split("."))
-        else:
-            parts = rest.split(".")
-            stat = parts[-1]
-            if head == "wrench":
-                out[m] = csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[1:-1]), stat, {"tool": parts[0]})
-            else:
-                out[m] = csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[:-1]), stat)
+            except Exception as exc:  # noqa: BLE001 - raised again below for each compare.* metric
+                cache["compare"] = exc
+        if isinstance(cache["compare"], Exception):
+            raise cache["compare"]
+        return cache["compare"]
+
+    def one(m):
+        if isinstance(m, dict):
+            return csv_metric(run_dir, m["file"], m["column"], m.get("stat", "mean"), m.get("where"), m.get("t"))
+        head, _, rest = m.partition(".")
+        if head == "manifest":
+            return _dig(json_file("manifest.json"), rest.split("."))
+        if head == "summary":
+            return _dig(json_file("summary.json"), rest.split("."))
+        if head == "compare":
+            return _dig(comparison(), rest.split("."))
+        parts = rest.split(".")
+        if head == "wrench":
+            return csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[1:-1]), parts[-1], {"tool": parts[0]})
+        return csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[:-1]), parts[-1])
+
+    for m in metrics:
+        name = m if isinstance(m, str) else m["name"]
+        try:
+            out[name] = one(m)
+        except Exception as exc:  # noqa: BLE001 - with `errors`, one metric's failure is its own
+            if errors is None:
+                raise
+            errors[name], out[name] = exc, None
     return {k: (v if v is None or isinstance(v, (int, float, str, bool)) else json.dumps(v)) for k, v in out.items()}
+
+
+# compare's messages name its command-line options; in a study the same things are `reference` keys
+_COMPARE_FLAGS = {"--terrain-before": "reference.terrain_before", "--terrain": "reference.terrain",
+                  "--transform": "reference.transform", "--fit-transform": "reference.fit_transform",
+                  "--joints": "reference.joints", "--against": "reference.against"}
+
+
+def measure(row: dict, run_dir: Path, metrics: list, reference: dict, objective=None) -> dict:
+    """The metrics (and a calibration's objective) of a finished simulation, into its row: status done, or the
+    status and one-line error of the first metric that could not be measured (the others still are). The
+    simulation stays finished: the next run of the study measures it again, without simulating it again."""
+    import re
+
+    errors: dict = {}
+    row.update(collect_metrics(run_dir, metrics, reference, errors))
+    if objective and not errors:
+        try:
+            from .calibrate import objective_value
+
+            row.update(objective_value(run_dir, objective))
+        except Exception as exc:  # noqa: BLE001 - the row says why
+            errors["objective"] = exc
+    if not errors:
+        row.update(status="done", error="")
+        return row
+    name, exc = next(iter(errors.items()))
+    text = " ".join(str(exc).split())
+    text = re.sub("|".join(map(re.escape, _COMPARE_FLAGS)), lambda m: _COMPARE_FLAGS[m.group(0)], text)
+    if not isinstance(exc, UserError):
+        text = f"{type(exc).__name__}: {text}"
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    row.update(status="bad input" if isinstance(exc, UserError) else "error",
+               error=f"{name}{more}: {text} (the simulation finished; its folder is measured again when the study "
+                     f"runs again)"[:500])
+    return row
 
 
 # ----------------------------------------------------------------------------------------------- one point
 def run_point(task: dict) -> dict:
-    """Runs one point in this process (a Dask worker) and returns its row; never raises for a failed run."""
+    """Runs one point in this process (a Dask worker), measures it and returns its row; never raises for a failed
+    run."""
     os.environ.setdefault("TI_CPU_MAX_NUM_THREADS", str(task.get("threads", 1)))
     _own_kernel_cache()
     from ..errors import DivergenceError
@@ -422,22 +476,20 @@ def run_point(task: dict) -> dict:
     row = {"point": task["id"], **task["point"], "status": "error", "error": "", "wall_s": None,
            "run_dir": str(run_dir)}
     t0 = time.perf_counter()
+    simulated = False
     try:
         scene = load_scene(task["scene"], task["overrides"])
         run_scene(scene, out_dir=run_dir, quiet=True, overwrite=True)
-        row.update(collect_metrics(run_dir, task["metrics"], task["reference"]))
-        if task.get("objective"):
-            from .calibrate import objective_value
-
-            row.update(objective_value(run_dir, task["objective"]))
-        row["status"] = "done"
+        simulated = True
     except UserError as exc:
         row.update(status="bad input", error=" ".join(str(exc).split()))
     except DivergenceError as exc:
         row.update(status="diverged", error=" ".join(str(exc).split()))
     except Exception as exc:  # noqa: BLE001 - any failure is the point's row, never the study's end
         row.update(status="error", error=f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500])
-    row["wall_s"] = round(time.perf_counter() - t0, 3)
+    row["wall_s"] = round(time.perf_counter() - t0, 3)  # the simulation's (kept when the point is measured again)
+    if simulated:
+        measure(row, run_dir, task["metrics"], task["reference"], task.get("objective"))
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(run_dir / POINT_FILE, {"overrides": task["overrides"], "row": row})
     return row
@@ -460,12 +512,18 @@ def _own_kernel_cache() -> None:
 
 
 def finished_row(run_dir: Path, sets: list[str]) -> dict | None:
+    """The stored row of a run folder whose simulation of these overrides finished (its manifest says done, whatever
+    its metrics gave: they are measured again), else None."""
+    from ..runner import run_folder_status
+
     try:
         data = json.loads((run_dir / POINT_FILE).read_text())
-    except (OSError, ValueError):
+        status, _ = run_folder_status(run_dir)
+    except (OSError, ValueError, UserError):
         return None
-    row = data.get("row") or {}
-    return row if data.get("overrides") == sets and row.get("status") == "done" else None
+    if not isinstance(data, dict) or data.get("overrides") != sets or status != "done":
+        return None
+    return data.get("row") if isinstance(data.get("row"), dict) else {}
 
 
 # ----------------------------------------------------------------------------------------------- the cluster
@@ -520,20 +578,29 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
     runs.mkdir(parents=True, exist_ok=True)
     tasks = [make_task(study, i, p, runs) for i, p in enumerate(study.points)]
     rows: dict[str, dict] = {}
-    todo = []
+    todo, finished = [], []
     for task in tasks:
-        done = None
         for folder in sorted(runs.glob("*-" + task["id"].rsplit("-", 1)[1])):  # by content: an index may move
-            done = done or finished_row(folder, task["overrides"])
-        if done is not None:
-            done = {**done, "point": task["id"]}
-        if done is not None:
-            rows[task["id"]] = done
+            stored = finished_row(folder, task["overrides"])
+            if stored is not None:
+                finished.append((task, folder, stored))
+                break
         else:
             todo.append(task)
     say = (lambda *a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
-    say(f"study {study.name}: {len(tasks)} points, {len(rows)} finished before, {len(todo)} to run -> {study.out}")
+    say(f"study {study.name}: {len(tasks)} points, {len(finished)} finished before, {len(todo)} to run -> {study.out}")
     wall0 = time.perf_counter()
+    if finished:  # their simulations are kept; their metrics and comparison are this study file's, measured again
+        from ..recorders import write_json
+
+        say(f"  measuring the {len(finished)} finished run(s) again (this file's metrics and reference)")
+        for task, folder, stored in finished:
+            row = {"point": task["id"], **task["point"], "status": "error", "error": "",
+                   "wall_s": stored.get("wall_s"), "run_dir": str(folder)}
+            rows[task["id"]] = measure(row, folder, study.metrics, study.reference)
+            write_json(folder / POINT_FILE, {"overrides": task["overrides"], "row": row})
+            if row["status"] != "done":
+                say(f"  {task['id']} {row['status']}: {row['error']}")
     if todo:
         cluster = Cluster(scheduler, workers)
         try:
@@ -558,7 +625,7 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
     ordered = [rows[t["id"]] for t in tasks]
     names = [p.path for p in study.parameters]
     csv_path = write_table(study.out / "study", ordered, names, study.metric_names())
-    write_study_meta(study, wall, len(todo))
+    write_study_meta(study, wall, len(todo), len(finished))
     from .figures import plot_study
 
     try:
@@ -570,7 +637,7 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
     return csv_path, failed, len(ordered)
 
 
-def write_study_meta(study: Study, wall: float, ran: int) -> None:
+def write_study_meta(study: Study, wall: float, ran: int, measured_again: int = 0) -> None:
     from ..recorders import write_json
 
     write_json(study.out / "study.json", {"name": study.name, "study_file": str(study.source),
@@ -578,6 +645,7 @@ def write_study_meta(study: Study, wall: float, ran: int) -> None:
                                           "parameters": [p.__dict__ for p in study.parameters],
                                           "sampling": study.sampling, "metrics": study.metric_names(),
                                           "reference": study.reference, "points_run_now": ran,
+                                          "points_measured_again": measured_again,
                                           "wall_time_s": round(wall, 3)})
 
 
