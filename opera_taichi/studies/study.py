@@ -25,6 +25,11 @@ changed); points whose simulation failed are run again. A failed run is a row wi
 error) and its one-line error; it never stops the study. A metric that cannot be measured (a comparison that fails)
 makes its row failed too, but keeps the simulation.
 
+Refused before any run (one line naming the key, exit 2): every point's values (and, for random / lhs, each
+parameter's low and high) that its scene would refuse, a bad reference (transform, fit_transform, a key that needs
+terrain), a CSV metric naming a file, tool or column its runs do not write, and a time window t: [t0, t1] without
+t0 < t1.
+
 Metrics (columns of the table):
 - `manifest.<key>[.<key>...]`, `summary.<key>...`, `comparison.<key>`: values from manifest.json, summary.json,
   or `compare.<key>` from comparing the run with `reference` (comparison.json in the run folder);
@@ -162,9 +167,12 @@ def _metric(spec, label: str, i: int):
                 raise UserError(f"{label}: {key}.{k}: required, a string")
         if spec.get("stat", "mean") not in STATS:
             raise UserError(f"{label}: {key}.stat: expected one of {', '.join(STATS)}, got {spec.get('stat')!r}")
+        where = spec.get("where")
+        if where is not None and not isinstance(where, dict):
+            raise UserError(f"{label}: {key}.where: expected a mapping {{column: value}}, got {where!r}")
         t = spec.get("t")
-        if t is not None and not (isinstance(t, list) and len(t) == 2 and all(_is_num(v) for v in t)):
-            raise UserError(f"{label}: {key}.t: expected [t0, t1] in s, got {t!r}")
+        if t is not None and not (isinstance(t, list) and len(t) == 2 and all(_is_num(v) for v in t) and t[0] < t[1]):
+            raise UserError(f"{label}: {key}.t: expected [t0, t1] in s with t0 < t1, got {t!r}")
         return dict(spec)
     raise UserError(f"{label}: {key}: expected a string or a mapping, got {spec!r}")
 
@@ -216,6 +224,7 @@ def load_study(path, out=None) -> Study:
     for k in ("terrain", "terrain_before", "joints", "against"):
         if k in reference:
             reference[k] = str(_path(base, reference[k], f"reference.{k}", label))
+    check_reference(reference, label)
     if any(isinstance(m, str) and m.startswith("compare.") for m in metrics) and not reference:
         raise UserError(f"{label}: metrics: compare.* metrics need a `reference` (terrain, joints or against)")
     name = data.get("name") or path.stem
@@ -224,8 +233,44 @@ def load_study(path, out=None) -> Study:
                   out_dir.resolve(), calibrate)
     if params_in:
         study.points = expand_points(study, label)
-        check_points(study, study.points, label)
+        ends, names = bound_points(study)
+        n = len(study.points)
+        names += [f"parameters: {', '.join(f'{k}={json.dumps(v)}' for k, v in p.items())} (point {i + 1} of {n})"
+                  for i, p in enumerate(study.points)]
+        check_points(study, ends + study.points, label, names)
     return study
+
+
+FIT_MODES = ("auto", "plane", "rigid")   # compare's --fit-transform choices
+
+
+def check_reference(reference: dict, label: str) -> None:
+    """What compare would refuse only after every simulation ran, refused here naming the study key."""
+    from .scan import Transform
+
+    if "transform" in reference:
+        try:
+            t = Transform.parse(reference["transform"], key="reference.transform")
+        except UserError as exc:
+            raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
+        if not isinstance(reference["transform"], str):  # compare parses the string form only
+            d = t.describe()
+            reference["transform"] = ",".join(repr(float(d[k])) for k in ("x_m", "y_m", "z_m", "yaw_deg", "roll_deg",
+                                                                          "pitch_deg"))
+    fit = reference.get("fit_transform")
+    if fit is not None and (not isinstance(fit, str) or fit not in FIT_MODES):
+        raise UserError(f"{label}: reference.fit_transform: expected {', '.join(FIT_MODES[:-1])} or {FIT_MODES[-1]} "
+                        f"(as compare --fit-transform), got {fit!r}")
+    if ("transform" in reference or fit is not None or "terrain_before" in reference) and "terrain" not in reference:
+        raise UserError(f"{label}: reference: transform, fit_transform and terrain_before place a scan of the terrain; "
+                        f"give reference.terrain (the scan after the dig)")
+    if "against" in reference:
+        if any(k in reference for k in ("terrain", "terrain_before", "joints")):
+            raise UserError(f"{label}: reference.against: compares with another run; give it without terrain, "
+                            f"terrain_before and joints")
+        if not (Path(reference["against"]) / "manifest.json").is_file():
+            raise UserError(f"{label}: reference.against: {reference['against']} is not a run folder (no "
+                            f"manifest.json)")
 
 
 def expand_points(study: Study, label: str) -> list[dict]:
@@ -270,27 +315,46 @@ def overrides(study: Study, point: dict) -> list[str]:
 MODEL_KEYS = ("machine", "machines", "tools", "motion")   # what a --set path can change of the machines and tools
 
 
-def check_points(study: Study, points: list[dict], label: str) -> None:
-    """Every point's scene loads and builds (a parameter path that does not exist, an actuator of a joint the
-    machine lacks, fail here, before any run), and its CSV metrics name columns its runs write. A model is built
-    once per distinct set of machine, tool and motion values (about a second each)."""
-    from ..model import build_model
+def check_points(study: Study, points: list[dict], label: str, names: list[str] | None = None) -> None:
+    """Every point's scene loads and builds (a parameter path that does not exist, a soil value out of range, an
+    actuator of a joint the machine lacks, fail here, before any run), and its CSV metrics name columns its runs
+    write. The whole model is built once per distinct set of machine, tool and motion values (about a second each);
+    every other point has its soil built (a millisecond). names: how an error names each point (default: its
+    values)."""
+    from ..model import _build_soil, build_model
     from ..observers import csv_columns
     from ..scene import load_scene
 
     built: set[str] = set()
-    for point in points:
+    for i, point in enumerate(points):
         sets = overrides(study, point)
         shape = json.dumps([o for o in sets if o.split(".", 1)[0].split("=", 1)[0] in MODEL_KEYS])
+        model = None
         try:
             scene = load_scene(study.scene, sets)
-            if shape in built:
-                continue
-            built.add(shape)
-            model = build_model(scene)
+            if shape not in built:
+                built.add(shape)
+                model = build_model(scene)
+            elif scene.soil is not None:  # the same machines and tools: only the soil can differ (its values checked)
+                _build_soil(scene)
         except UserError as exc:
-            raise UserError(f"{label}: parameters: {' '.join(str(exc).split())}") from None
-        check_metric_columns(study.metrics, csv_columns(model), [b.name for b in model.bindings], label)
+            name = names[i] if names else "parameters: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in point.items())
+            raise UserError(f"{label}: {name}: {' '.join(str(exc).split())}") from None
+        if model is not None:
+            check_metric_columns(study.metrics, csv_columns(model), [b.name for b in model.bindings], label)
+
+
+def bound_points(study: Study) -> tuple[list[dict], list[str]]:
+    """random / lhs: each parameter at its low and at its high end, the others at their middle (sampled points
+    fall between the bounds, so a bound a run would refuse is refused before any), with the study key of each."""
+    if study.sampling not in ("random", "lhs"):
+        return [], []
+    points, names = [], []
+    for p in study.parameters:
+        for end in ("low", "high"):
+            points.append({**{q.path: scale(q, 0.5) for q in study.parameters}, p.path: getattr(p, end)})
+            names.append(f"parameters.{p.path}.{end}: {getattr(p, end):g}")
+    return points, names
 
 
 def check_metric_columns(metrics: list, columns: dict[str, list[str]], tools: list[str], label: str) -> None:
@@ -310,7 +374,8 @@ def check_metric_columns(metrics: list, columns: dict[str, list[str]], tools: li
         else:
             file, column, where = spec["file"], spec["column"], spec.get("where") or {}
             if file not in CSV_FILES:
-                continue
+                raise UserError(f"{label}: {key}.file: expected a CSV file the runs write ({', '.join(sorted(columns))}"
+                                f"), got {file!r}")
         if file not in columns:
             raise UserError(f"{label}: {key}: {spec!r}: this scene's runs write no {file} (it has no "
                             f"{'machine' if file == 'joints.csv' else 'soil'})")

@@ -1,0 +1,77 @@
+"""study: what a study file gets wrong is refused before any simulation (every point and both ends of a random or lhs
+range, the reference, CSV metrics). No simulation runs here: each refusal is checked by load_study first (an old
+study tool that let one through would start running it)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from opera_taichi.cli import main
+from opera_taichi.errors import UserError
+from opera_taichi.studies.study import load_study
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = f"""
+scene: {ROOT / 'scenes' / 'blade_cut.yaml'}
+set: {{sim.duration: 0.5, soil.overrides.radius: 0.04, output.plots: false}}
+"""
+
+
+def _refused(tmp_path, capsys, body: str, words: str) -> None:
+    """The study file is refused by load_study and by `study` (exit 2, one line naming the key), and no study
+    folder is made."""
+    path = tmp_path / "s.yaml"
+    path.write_text(BASE + body)
+    with pytest.raises(UserError) as exc:
+        load_study(path)
+    assert words in str(exc.value), str(exc.value)
+    capsys.readouterr()
+    assert main(["study", str(path), "--out", str(tmp_path / "out"), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and "\n" not in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("body, words", [
+    # a later point's soil value (the first point's is fine: it was the only one checked)
+    ("parameters: {soil.overrides.friction_angle_deg: [30, 95]}\n",
+     "parameters: soil.overrides.friction_angle_deg=95 (point 2 of 2): soil.overrides.friction_angle_deg: expected "
+     "0 < angle < 90 degrees, got 95"),
+    ("parameters: {soil.overrides.friction_angle_deg: [30, 35], soil.overrides.cohesion: [0, -100]}\n",
+     "(point 2 of 4): soil.overrides.cohesion: expected cohesion >= 0 Pa, got -100"),
+    # both ends of a random / lhs range, whichever values the samples happen to take
+    ("parameters: {soil.overrides.friction_angle_deg: {low: 30, high: 95}}\nsampling: lhs\nsamples: 2\n",
+     "parameters.soil.overrides.friction_angle_deg.high: 95: soil.overrides.friction_angle_deg: expected"),
+    ("parameters: {soil.overrides.cohesion: {low: -100, high: 1000}}\nsampling: random\nsamples: 3\n",
+     "parameters.soil.overrides.cohesion.low: -100: soil.overrides.cohesion: expected cohesion >= 0 Pa"),
+])
+def test_every_point_and_both_ends_of_a_range_are_checked_before_any_run(tmp_path, capsys, body, words):
+    _refused(tmp_path, capsys, body + "metrics: [manifest.particles]\n", words)
+
+
+@pytest.mark.parametrize("extra, words", [
+    ("reference: {terrain: scan.xyz, transform: '1,2'}",
+     "reference.transform: expected x,y,z,yaw_deg[,roll_deg,pitch_deg] (m, degrees), got '1,2'"),
+    ("reference: {terrain: scan.xyz, transform: {xyz: [1, 2]}}", "reference.transform.xyz: expected [x, y, z]"),
+    ("reference: {terrain: scan.xyz, fit_transform: yes}",
+     "reference.fit_transform: expected auto, plane or rigid (as compare --fit-transform), got True"),
+    ("reference: {joints: scan.xyz, fit_transform: auto}", "reference: transform, fit_transform and terrain_before "
+                                                           "place a scan of the terrain; give reference.terrain"),
+    ("reference: {against: .}", "is not a run folder (no manifest.json)"),
+])
+def test_a_bad_reference_is_refused_before_any_run(tmp_path, capsys, extra, words):
+    (tmp_path / "scan.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n")
+    _refused(tmp_path, capsys, "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
+                               f"metrics: [compare.terrain_rmse_m]\n{extra}\n", words)
+
+
+@pytest.mark.parametrize("metric, words", [
+    ("{name: x, file: forces.csv, column: fx}",
+     "metrics.0.file: expected a CSV file the runs write (soil_mass.csv, tool_wrench.csv), got 'forces.csv'"),
+    ("{name: x, file: tool_wrench.csv, column: fx, t: [5, 1]}",
+     "metrics.0.t: expected [t0, t1] in s with t0 < t1, got [5, 1]"),
+])
+def test_a_csv_metric_the_runs_cannot_give_is_refused_before_any_run(tmp_path, capsys, metric, words):
+    _refused(tmp_path, capsys, f"parameters: {{soil.overrides.friction_angle_deg: [30, 35]}}\nmetrics: [{metric}]\n",
+             words)
