@@ -1,6 +1,6 @@
 """study: what a study file gets wrong is refused before any simulation (every point and both ends of a random or lhs
-range, the reference, CSV metrics). No simulation runs here: each refusal is checked by load_study first (an old
-study tool that let one through would start running it)."""
+range, the reference, CSV metrics), and study.png plots parameters that are not numbers. No simulation runs here:
+each refusal is checked by load_study first (an old study tool that let one through would start running it)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -75,3 +75,32 @@ def test_a_bad_reference_is_refused_before_any_run(tmp_path, capsys, extra, word
 def test_a_csv_metric_the_runs_cannot_give_is_refused_before_any_run(tmp_path, capsys, metric, words):
     _refused(tmp_path, capsys, f"parameters: {{soil.overrides.friction_angle_deg: [30, 35]}}\nmetrics: [{metric}]\n",
              words)
+
+
+def test_study_png_plots_a_parameter_that_is_not_a_number_as_categories(tmp_path, monkeypatch):
+    from opera_taichi.studies import figures
+
+    figs = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.append(fig))  # keep the figure to look at it
+    rows = [{"soil.preset": "dirt", "m": 2.0, "status": "done"}, {"soil.preset": "gravel", "m": 3.0, "status": "done"},
+            {"soil.preset": "sand", "m": None, "status": "diverged"}]
+    figures.plot_study(rows, ["soil.preset"], ["m"], tmp_path / "study.png")
+    ax = figs[0].axes[0]
+    points, failed = ax.lines
+    assert list(points.get_xdata()) == [0, 1] and list(points.get_ydata()) == [2.0, 3.0]
+    assert list(failed.get_xdata()) == [2]
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["dirt", "gravel", "sand"]
+
+
+def test_study_png_title_is_clear_of_the_panels(tmp_path, monkeypatch):
+    from opera_taichi.studies import figures
+
+    figs = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.append(fig))
+    metrics = [f"metric_{i}" for i in range(8)]  # one parameter column, many metric rows: a tall, narrow figure
+    rows = [{"p": p, **{m: p * 2 for m in metrics}, "status": "done"} for p in (1.0, 2.0)]
+    figures.plot_study(rows, ["p"], metrics, tmp_path / "study.png")
+    fig = figs[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    assert fig._suptitle.get_window_extent(renderer).y0 >= fig.axes[0].get_tightbbox(renderer).y1

@@ -114,29 +114,42 @@ def plot_joint_comparison(arrays: dict, png_path: Path) -> None:
 
 
 def plot_study(rows: list[dict], parameters: list[str], metrics: list[str], png_path: Path) -> None:
-    """Each metric (rows) against each parameter (columns); failed points marked on the axis in red."""
+    """Each metric (rows) against each parameter (columns); failed points marked on the axis in red. A parameter
+    whose values are not all numbers (a preset name, a flag, a vector) is plotted as categories, in study order."""
     nr, nc = max(1, len(metrics)), max(1, len(parameters))
-    fig, axes = plt.subplots(nr, nc, figsize=(3.6 * nc + 0.8, 2.8 * nr + 0.6), squeeze=False)
-    for r, m in enumerate(metrics):
-        for c, p in enumerate(parameters):
+    # constrained layout keeps the title clear of the panels (tight_layout ignores a suptitle)
+    fig, axes = plt.subplots(nr, nc, figsize=(3.6 * nc + 0.8, 2.8 * nr + 0.6), squeeze=False, layout="constrained")
+    done = np.array([row.get("status") == "done" for row in rows], bool)
+    for c, p in enumerate(parameters):
+        px, labels = _axis_values([row.get(p) for row in rows])
+        for r, m in enumerate(metrics):
             ax = axes[r, c]
-            px = np.array([_num(row.get(p)) for row in rows])
             my = np.array([_num(row.get(m)) for row in rows])
-            ok = np.array([row.get("status") == "done" for row in rows]) & np.isfinite(px) & np.isfinite(my)
+            ok = done & np.isfinite(px) & np.isfinite(my)
             ax.plot(px[ok], my[ok], "o", color="tab:blue", ms=5)
-            failed = np.array([row.get("status") != "done" for row in rows]) & np.isfinite(px)
+            failed = ~done & np.isfinite(px)
             if failed.any():
                 ax.plot(px[failed], np.full(failed.sum(), np.nanmin(my[ok]) if ok.any() else 0.0), "x",
                         color="tab:red", ms=7, label="failed")
                 ax.legend(fontsize=7)
+            if labels is not None:
+                ax.set_xticks(range(len(labels)), labels, fontsize=8, rotation=30 if len(labels) > 4 else 0)
+                ax.set_xlim(-0.5, len(labels) - 0.5)
             ax.grid(alpha=0.3)
             if r == nr - 1:
                 ax.set_xlabel(p, fontsize=8)
             if c == 0:
                 ax.set_ylabel(m, fontsize=8)
-    fig.suptitle(f"{len(rows)} points, {sum(row.get('status') == 'done' for row in rows)} done", fontsize=10)
-    fig.tight_layout()
+    fig.suptitle(f"{len(rows)} points, {int(done.sum())} done", fontsize=10)
     _save(fig, png_path)
+
+
+def _axis_values(values: list) -> tuple[np.ndarray, list[str] | None]:
+    """(x of each value, None) for numbers; (index of each value's category, category labels) otherwise."""
+    if all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in values):
+        return np.array([_num(v) for v in values]), None
+    labels = list(dict.fromkeys("" if v is None else str(v) for v in values))
+    return np.array([labels.index("" if v is None else str(v)) for v in values], float), labels
 
 
 def plot_calibration(trials: list[dict], parameters: list[str], best: dict, png_path: Path) -> None:
