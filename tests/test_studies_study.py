@@ -104,3 +104,39 @@ def test_study_png_title_is_clear_of_the_panels(tmp_path, monkeypatch):
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     assert fig._suptitle.get_window_extent(renderer).y0 >= fig.axes[0].get_tightbbox(renderer).y1
+
+
+def test_a_finished_run_is_kept_only_for_the_scene_as_it_was(tmp_path):
+    """A point's finished run is reused for the same overrides of the same scene content: after the base scene or
+    its soil preset file is edited, the old run no longer counts as that point's (it would mix two scenes)."""
+    import json
+    import shutil
+
+    from opera_taichi.studies.study import finished_row, make_task
+
+    scene = tmp_path / "blade.yaml"
+    shutil.copy(ROOT / "scenes" / "blade_cut.yaml", scene)
+    preset = tmp_path / "soil.yaml"
+    preset.write_text("preset: sand\nfriction_angle_deg: 33\n")
+    path = tmp_path / "s.yaml"
+    path.write_text(f"scene: {scene}\nset: {{sim.duration: 0.5, soil.preset_file: {preset}}}\n"
+                    "parameters: {soil.overrides.cohesion: [0, 10]}\nmetrics: [manifest.particles]\n")
+
+    def task():
+        study = load_study(path, tmp_path / "out")
+        return make_task(study, 0, study.points[0], tmp_path / "out" / "runs")
+
+    first = task()
+    folder = Path(first["run_dir"])
+    folder.mkdir(parents=True)
+    (folder / "manifest.json").write_text(json.dumps({"status": "done"}))
+    (folder / "point.json").write_text(json.dumps({"overrides": first["overrides"], "scene": first["scene_sha"],
+                                                   "row": {"status": "done"}}))
+    assert finished_row(folder, first["overrides"], task()["scene_sha"]) == {"status": "done"}
+    preset.write_text("preset: sand\nfriction_angle_deg: 36\n")      # the preset's content, not its name
+    assert finished_row(folder, first["overrides"], task()["scene_sha"]) is None
+    preset.write_text("preset: sand\nfriction_angle_deg: 33\n")
+    scene.write_text(scene.read_text().replace("velocity: [-0.3, 0.0, 0.0]", "velocity: [-0.2, 0.0, 0.0]"))
+    again = task()
+    assert again["overrides"] == first["overrides"] and finished_row(folder, first["overrides"],
+                                                                       again["scene_sha"]) is None

@@ -285,15 +285,10 @@ def fingerprint(study, cfg: dict) -> dict:
     """What a trial's loss depends on, by the study-file key that sets it: the scene (as the study's set resolves it,
     with the content of its soil preset file), the set, the parameter space and the objective (files by content).
     Kept in the Optuna study's user attrs: a resume continues only the calibration it was recorded for."""
-    from ..scene import load_scene, scene_to_dict
-    from .study import overrides
+    from .study import overrides, scene_fingerprint
 
-    scene = load_scene(study.scene, overrides(study, {}))
-    text = json.dumps(scene_to_dict(scene), sort_keys=True).encode()
-    if scene.soil.preset_file is not None:  # the trials' soil is its content, not its name
-        text += Path(scene.soil.preset_file).read_bytes()
     spec = cfg["spec"]
-    fp = {"set": study.fixed, "scene": _sha(text),
+    fp = {"set": study.fixed, "scene": scene_fingerprint(study.scene, overrides(study, {})),
           "calibrate.parameters": {p.path: {"low": p.low, "high": p.high, "log": p.log} for p in cfg["params"]},
           "calibrate.objective": spec["objective"]}
     if spec["objective"] == "force":

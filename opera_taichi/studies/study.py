@@ -19,7 +19,8 @@ A study file (paths relative to it; every key checked, errors one line naming th
 
 The study folder holds runs/<point>/ (a run folder each, with point.json: the point's row), study.csv,
 study.parquet and study.png (each metric against each parameter). When the study runs again, a point whose
-simulation finished (point.json with the same overrides, manifest.json status done) is not simulated again, but its
+simulation finished (point.json with the same overrides of the same scene content, its soil preset file's included;
+manifest.json status done) is not simulated again, but its
 metrics and comparison are measured again from its run folder for the study file as it is now (metrics or reference
 changed); points whose simulation failed are run again. A failed run is a row with its status (bad input, diverged,
 error) and its one-line error; it never stops the study. A metric that cannot be measured (a comparison that fails)
@@ -386,6 +387,18 @@ def check_metric_columns(metrics: list, columns: dict[str, list[str]], tools: li
             raise UserError(f"{label}: {key}: {file} has no tool {where['tool']!r} (tools: {', '.join(tools)})")
 
 
+def scene_fingerprint(scene_path, sets: list[str]) -> str:
+    """What a run of the scene under these overrides depends on, by content: the resolved scene and its soil preset
+    file's content (an edited base scene or preset is not the run kept from before it)."""
+    from ..scene import load_scene, scene_to_dict
+
+    scene = load_scene(scene_path, sets)
+    text = json.dumps(scene_to_dict(scene), sort_keys=True).encode()
+    if scene.soil is not None and scene.soil.preset_file is not None:
+        text += Path(scene.soil.preset_file).read_bytes()
+    return hashlib.sha256(text).hexdigest()[:16]
+
+
 def point_id(index: int, study: Study, point: dict) -> str:
     text = json.dumps({"scene": str(study.scene), "set": overrides(study, point)}, sort_keys=True)
     return f"p{index:03d}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
@@ -556,7 +569,7 @@ def run_point(task: dict) -> dict:
     if simulated:
         measure(row, run_dir, task["metrics"], task["reference"], task.get("objective"))
     run_dir.mkdir(parents=True, exist_ok=True)
-    write_json(run_dir / POINT_FILE, {"overrides": task["overrides"], "row": row})
+    write_json(run_dir / POINT_FILE, {"overrides": task["overrides"], "scene": task["scene_sha"], "row": row})
     return row
 
 
@@ -576,9 +589,10 @@ def _own_kernel_cache() -> None:
     os.environ["OPERA_TAICHI_WORKER_CACHE"] = name
 
 
-def finished_row(run_dir: Path, sets: list[str]) -> dict | None:
-    """The stored row of a run folder whose simulation of these overrides finished (its manifest says done, whatever
-    its metrics gave: they are measured again), else None."""
+def finished_row(run_dir: Path, sets: list[str], scene_sha: str) -> dict | None:
+    """The stored row of a run folder whose simulation of these overrides, of the scene as it is now
+    (scene_fingerprint), finished (its manifest says done, whatever its metrics gave: they are measured again), else
+    None."""
     from ..runner import run_folder_status
 
     try:
@@ -586,7 +600,8 @@ def finished_row(run_dir: Path, sets: list[str]) -> dict | None:
         status, _ = run_folder_status(run_dir)
     except (OSError, ValueError, UserError):
         return None
-    if not isinstance(data, dict) or data.get("overrides") != sets or status != "done":
+    if not isinstance(data, dict) or data.get("overrides") != sets or data.get("scene") != scene_sha \
+            or status != "done":
         return None
     return data.get("row") if isinstance(data.get("row"), dict) else {}
 
@@ -627,9 +642,10 @@ class Cluster:
 
 def make_task(study: Study, index: int, point: dict, runs: Path, objective=None, sub: str = "runs") -> dict:
     pid = point_id(index, study, point)
-    return {"id": pid, "point": point, "scene": str(study.scene), "overrides": overrides(study, point),
-            "run_dir": str(runs / pid), "metrics": study.metrics, "reference": study.reference, "threads": 1,
-            "objective": objective}
+    sets = overrides(study, point)
+    return {"id": pid, "point": point, "scene": str(study.scene), "overrides": sets,
+            "scene_sha": scene_fingerprint(study.scene, sets), "run_dir": str(runs / pid), "metrics": study.metrics,
+            "reference": study.reference, "threads": 1, "objective": objective}
 
 
 def run_study(path, scheduler: str | None = None, workers: int | None = None, out=None,
@@ -646,7 +662,7 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
     todo, finished = [], []
     for task in tasks:
         for folder in sorted(runs.glob("*-" + task["id"].rsplit("-", 1)[1])):  # by content: an index may move
-            stored = finished_row(folder, task["overrides"])
+            stored = finished_row(folder, task["overrides"], task["scene_sha"])
             if stored is not None:
                 finished.append((task, folder, stored))
                 break
@@ -663,7 +679,7 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
             row = {"point": task["id"], **task["point"], "status": "error", "error": "",
                    "wall_s": stored.get("wall_s"), "run_dir": str(folder)}
             rows[task["id"]] = measure(row, folder, study.metrics, study.reference)
-            write_json(folder / POINT_FILE, {"overrides": task["overrides"], "row": row})
+            write_json(folder / POINT_FILE, {"overrides": task["overrides"], "scene": task["scene_sha"], "row": row})
             if row["status"] != "done":
                 say(f"  {task['id']} {row['status']}: {row['error']}")
     if todo:
