@@ -13,6 +13,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable, Protocol, runtime_checkable
 
+import numpy as np
+
 
 @dataclass
 class MachineControl:
@@ -72,13 +74,23 @@ def as_control(value, machine_names: list[str], t: float) -> Control:
                     f"{type(value).__name__}")
 
 
-def _as_float(value):
-    if isinstance(value, (bool, str, bytes)):
-        return value  # not a number, though float() takes it: refused, naming its joint, where the machine applies it
+def real_number(value) -> float | None:
+    """value as a float when it is one real number (a Python or NumPy scalar, a 0-d array or tensor), else None: a
+    bool, a string or an array of several values is no joint target, though float() would take some of them."""
+    if isinstance(value, (str, bytes)):
+        return None
     try:
+        arr = np.asarray(value)
+        if arr.ndim != 0 or arr.dtype.kind not in "iuf":  # (kind b: a bool, O: no number at all)
+            return None
         return float(value)
     except (TypeError, ValueError):
-        return value  # refused, naming its joint, where the machine applies it
+        return None
+
+
+def _as_float(value):
+    number = real_number(value)
+    return value if number is None else number  # (refused, naming its joint, where the machine applies it)
 
 
 def _only(names: list[str]) -> str:

@@ -146,7 +146,6 @@ class ZX120DigEnv(gym.Env):
 
         self.sim = None
         self._initial = None        # State of the settled start (with the soil arrays)
-        self._planes = None
         self._obs = None
         self._steps = 0
         self._diverged: str | None = None
@@ -218,24 +217,20 @@ class ZX120DigEnv(gym.Env):
 
     # ------------------------------------------------------------------------------------------ internals
     def _build(self) -> None:
-        from .observers import hull_halfspaces
         from .simulation import Simulation
 
         sim = Simulation(self.model, arch=self.arch, quiet=True)
         sim.scene = self.scene
         self.sim = sim
         self._initial = sim.get_state()
-        self._planes = [hull_halfspaces(b.mesh) for b in self.model.bindings]
 
     def _observe(self) -> dict:
-        from .observers import mass_in_tools
-
         sim = self.sim
         machine = sim.machines[self.machine_name]
         q, qd, _ = machine.joint_states()
         tip = machine.link_state(machine.desc.tip_link)[0]
         hm = sim.soil.heightmap(tip[0] + self._offsets, tip[1] + self._offsets)
-        mass = mass_in_tools(sim, self._planes)[self._tool]
+        mass = sim.soil_in_tools()[self.model.bindings[self._tool].name]
         raw = {"q": q, "qd": qd, "tip": tip, "bucket_wrench": sim.tool_wrench[self._tool], "heightmap": hm,
                "bucket_mass": np.array([mass])}
         for key, value in raw.items():

@@ -21,6 +21,7 @@ from ._quiet import quiet_c_output
 
 with quiet_c_output():  # pybullet's C code prints its build time on import; keep stdout for our output
     import pybullet as pb
+from .control import real_number
 from .errors import UserError
 from .geometry import quat_to_matrix
 from .machine_description import MOVABLE, MachineDescription, atomic_write
@@ -428,7 +429,6 @@ class BulletMachine:
 
 
 def _finite(value) -> bool:
-    """A finite real number: not a bool, a string or an array (float() would take True, "0.1" and a 1-element array)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        return False
-    return math.isfinite(float(value))
+    """One finite real number (control.real_number: not a bool, a string or an array of several)."""
+    number = real_number(value)
+    return number is not None and math.isfinite(number)

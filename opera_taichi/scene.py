@@ -1282,9 +1282,6 @@ def scene_reference_markdown() -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
-    print(scene_reference_markdown(), end="")
-
 
 @contextlib.contextmanager
 def naming_the_scene(path):
@@ -1297,3 +1294,7 @@ def naming_the_scene(path):
         if section in Scene.model_fields:
             raise UserError(f"{path}: {exc}") from None
         raise
+
+
+if __name__ == "__main__":
+    print(scene_reference_markdown(), end="")

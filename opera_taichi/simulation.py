@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -96,8 +97,7 @@ class Simulation:
         elif overrides:
             raise ValueError("overrides go with a scene file path; a loaded Scene already has its values")
         with naming_the_scene(path) if path is not None else contextlib.nullcontext():
-            model = build_model(scene)
-        sim = cls(model, arch=arch or scene.sim.arch, quiet=quiet, spin_wait=scene.sim.spin_wait)
+            sim = cls(build_model(scene), arch=arch or scene.sim.arch, quiet=quiet, spin_wait=scene.sim.spin_wait)
         sim.scene = scene
         return sim
 
@@ -247,6 +247,8 @@ class Simulation:
         `bucket_mass` read. Soil heaped above the strike plane is not counted."""
         from .observers import hull_halfspaces, mass_in_tools
 
+        if getattr(self, "_closed", False):
+            raise RuntimeError("the simulation was closed")
         names = [b.name for b in self.model.bindings]
         if self.soil is None or not names:
             return {name: 0.0 for name in names}
@@ -309,7 +311,7 @@ def read_checkpoint_header(path) -> dict:
             return json.loads(str(f["header"]))
     except OSError as exc:
         raise UserError(f"{path}: cannot read the checkpoint ({exc.strerror or exc})") from None
-    except (KeyError, ValueError):  # (NumPy's reason for another file, e.g. its pickle refusal, would mislead)
+    except (KeyError, ValueError, EOFError, zipfile.BadZipFile):  # (NumPy's reason, e.g. its pickle refusal, misleads)
         raise UserError(f"{path}: not an opera-taichi checkpoint (an .npz written by save_checkpoint or "
                         f"run --checkpoint-every)") from None
 

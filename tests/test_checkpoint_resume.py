@@ -119,5 +119,11 @@ def test_a_checkpoint_of_another_scene_or_solver_version_is_refused(alone_and_re
     script.write_text("print('hello')\n")
     with pytest.raises(UserError, match=r"not_a_checkpoint.py: not an opera-taichi checkpoint \(an .npz"):
         load_checkpoint(script, build_model(load_scene(SCENE, sets)), dem)
+    empty, torn = tmp_path / "empty.ckpt.npz", tmp_path / "torn.ckpt.npz"
+    empty.write_bytes(b"")
+    torn.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])  # a copy cut short
+    for bad in (empty, torn):
+        with pytest.raises(UserError, match="not an opera-taichi checkpoint"):
+            load_checkpoint(bad, build_model(load_scene(SCENE, sets)), dem)
     with pytest.raises(UserError, match="cannot read the checkpoint"):
         load_checkpoint(tmp_path / "missing.ckpt.npz", build_model(load_scene(SCENE, sets)), dem)

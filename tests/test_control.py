@@ -77,7 +77,8 @@ def test_a_target_that_is_no_number_is_refused_and_the_machine_goes_on(sim):
     before = sim.get_state()
     for control in ({"boom_joint": float("nan")}, ot.MachineControl(qd_target={"arm_joint": float("inf")}),
                     {"boom_joint": -0.5, "arm_joint": "high"}, {"boom_joint": True}, {"boom_joint": "0.1"},
-                    {"boom_joint": np.array([0.1, 0.2])}, ot.MachineControl(q_target={"boom_joint": np.zeros(4)})):
+                    {"boom_joint": np.array([0.1, 0.2])}, ot.MachineControl(q_target={"boom_joint": np.zeros(4)}),
+                    {"boom_joint": np.True_}):
         with pytest.raises(UserError, match=r"is not a finite number \(rad"):
             sim.step(control)
     # commands of the wrong shape: one line saying what is expected, not a Python error from inside
@@ -89,6 +90,11 @@ def test_a_target_that_is_no_number_is_refused_and_the_machine_goes_on(sim):
             sim.step(control)
     after = sim.get_state()
     assert after.t == before.t and np.array_equal(after.machines["zx120"].q, before.machines["zx120"].q)
+    # one number however it comes: a NumPy scalar or a 0-d array, keyed by joint or inside a MachineControl
+    for value in (np.float32(-0.4), np.array(-0.4)):
+        for control in ({"boom_joint": value}, ot.MachineControl(q_target={"boom_joint": value})):
+            sim.step(control)
+            assert sim.applied.machines["zx120"].q_target["boom_joint"] == pytest.approx(-0.4)
     _run(sim, 0.05, {"boom_joint": -0.5})   # and it steps on
     assert np.all(np.isfinite(sim.machine.joint_states()[0]))
 

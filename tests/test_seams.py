@@ -214,7 +214,7 @@ def test_a_closed_simulation_neither_steps_nor_observes():
     sim = _excavator()
     sim.step()
     sim.close()
-    for call in (sim.step, sim.observe):
+    for call in (sim.step, sim.observe, sim.soil_in_tools):
         with pytest.raises(RuntimeError, match="closed"):
             call()
 

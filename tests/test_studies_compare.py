@@ -494,3 +494,23 @@ def test_joint_logs_in_other_units_a_clock_time_and_a_still_noisy_joint(tmp_path
     capsys.readouterr()
     ms = cmp.compare(run, joints=log("ms.csv", steps * 1000.0), out=tmp_path / "c4")
     assert any("milliseconds" in w for w in ms["warnings"]) and "milliseconds" in capsys.readouterr().err
+
+
+def test_a_field_dig_wider_than_the_runs_is_not_taken_for_a_misplaced_scan(tmp_path):
+    """The reference dug a trench twice as wide as the run's, and its scan is cropped close to the dig: most of the
+    ground the run left alone is dug in the reference (the old median test read that as a scan placed 0.5 m low and
+    refused it). Only a scan off nearly all that ground one way is misplaced."""
+    run = make_run(tmp_path / "run", relief=False)
+    gx, gy = np.meshgrid(X, Y, indexing="ij")
+    t = TRENCH
+    fx = _smoothstep((gx - t["x0"]) / t["ramp"]) * _smoothstep((t["x1"] - gx) / t["ramp"])
+    wide = -t["depth"] * fx * _smoothstep((2 * t["half_width"] - np.abs(gy)) / 0.15)
+    z = ground(gx, gy, relief=False) + wide + heave(gx, gy)
+    keep = (np.abs(gy) < 1.1) & (gx > 4.4) & (gx < 7.1)           # a scan of the dig and a little around it
+    np.savez(tmp_path / "wide.npz", x=X, y=Y, z=np.where(keep, z, np.nan))
+    res = cmp.compare(run, terrain=tmp_path / "wide.npz", out=tmp_path / "wide")
+    assert res["reference_cut_volume_m3"] > 1.5 * res["cut_volume_m3"]   # the wider dig is measured, not refused
+    # ... where the median of the reference's change over the run's undisturbed ground was well below the threshold
+    run_dug = np.abs(trench(gx, gy) + heave(gx, gy)) > 0.02
+    still = keep & ~run_dug
+    assert np.median(wide[still]) < -0.1

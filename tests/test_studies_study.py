@@ -140,3 +140,39 @@ def test_a_finished_run_is_kept_only_for_the_scene_as_it_was(tmp_path):
     again = task()
     assert again["overrides"] == first["overrides"] and finished_row(folder, first["overrides"],
                                                                        again["scene_sha"]) is None
+    # a file the scene names, by content: the motion CSV
+    motion = tmp_path / "motion.csv"
+    motion.write_text("t,boom_joint\n0,0\n1,0.1\n")
+    excavation = tmp_path / "dig.yaml"
+    shutil.copy(ROOT / "scenes" / "zx120_dig_cycle.yaml", excavation)
+    text = excavation.read_text()
+    excavation.write_text(text[:text.index("motion:")] + "motion: {type: csv, file: motion.csv}\n"
+                          + text[text.index("output:"):])
+    from opera_taichi.studies.study import scene_fingerprint
+
+    before = scene_fingerprint(excavation, [])
+    assert scene_fingerprint(excavation, []) == before
+    motion.write_text("t,boom_joint\n0,0\n1,0.2\n")
+    assert scene_fingerprint(excavation, []) != before
+
+
+def test_a_metric_the_run_has_no_value_for_is_an_error_not_an_empty_cell(tmp_path):
+    """A misspelt summary or manifest key, or a CSV window without samples, leaves the row failed with its reason
+    (a study read them as empty cells of rows marked done); a key that is there is measured."""
+    import json
+
+    from opera_taichi.studies.study import collect_metrics
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "manifest.json").write_text(json.dumps({"status": "done", "particles": 991}))
+    (run / "summary.json").write_text(json.dumps({"tools": {"bucket_link": {"soil_held_kg": 12.5}}}))
+    (run / "tool_wrench.csv").write_text("t,tool,fx,fy,fz,tx,ty,tz\n0.5,blade,10,0,0,0,0,0\n1.0,blade,20,0,0,0,0,0\n")
+    errors = {}
+    window = {"name": "late", "file": "tool_wrench.csv", "column": "fx", "stat": "mean", "t": [5, 10]}
+    row = collect_metrics(run, ["manifest.particles", "summary.tools.bucket_link.soil_held_kg",
+                                "summary.tools.bucket.soil_held_kg", "manifest.nonexistent", window], {}, errors)
+    assert row["manifest.particles"] == 991 and row["summary.tools.bucket_link.soil_held_kg"] == 12.5
+    assert set(errors) == {"summary.tools.bucket.soil_held_kg", "manifest.nonexistent", "late"}
+    assert "summary.json has no 'tools.bucket.soil_held_kg'" in str(errors["summary.tools.bucket.soil_held_kg"])
+    assert "no fx samples" in str(errors["late"])

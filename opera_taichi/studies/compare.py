@@ -46,6 +46,8 @@ STILL_RANGE = math.radians(2.0)  # rad: a joint whose log moves less than this (
 CLOCK_TIME_S = 1e6         # s: a CSV log whose t starts later than this (11.6 days) holds clock time (epoch seconds)
 FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
 MAX_VERTICAL_OFFSET_M = 2.0  # a placed scan this far above/below the run's terrain has not been placed
+MISPLACED_SHARE = 0.8      # a scan off the run's undisturbed ground by more than the change threshold on this share of
+                           # it, one way, is misplaced vertically
 MIN_DIG_COVERAGE = 0.5     # a reference covering less of the dig area than this is refused...
 WARN_DIG_COVERAGE = 0.9    # ...less than this gets a warning (its volumes miss part of the dig)
 FIT_WARN_RESIDUAL_M = 0.05  # a fitted placement with a larger residual (good fits: ~0.02 m on DEM grain)...
@@ -203,7 +205,7 @@ def place_scan(scan: "scans.Scan", grid: dict, transform: "scans.Transform | Non
 
 def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference_initial: dict | None,
                        label: str, change_threshold: float, margin_m: float, key: str = "--terrain",
-                       warnings: list | None = None) -> tuple[dict, dict]:
+                       warnings: list | None = None, fitted: bool = False) -> tuple[dict, dict]:
     """The terrain block of comparison.json and the arrays the figures need. UserError (naming `key`) when the
     reference cannot be compared: not placed vertically, no dig area, too little of the dig area covered; a partial
     cover is appended to `warnings`."""
@@ -228,14 +230,21 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
         # the ground the run left alone: there the reference must match its initial surface, or it is misplaced
         still = covered & ~dig_area(changes[:1], change_threshold, margin_cells)
         if still.sum() >= 10:
-            offset = float(np.median((ref1 - ref0)[still]))
-            if abs(offset) > change_threshold:
+            dz = (ref1 - ref0)[still]
+            offset = float(np.median(dz))
+            # misplaced: nearly all that ground off by more than the threshold, the same way (a field dig wider than
+            # the run's, or its spoil, puts part of the reference's trench there: not a misplacement)
+            shifted = max(np.mean(dz > change_threshold), np.mean(dz < -change_threshold))
+            if shifted > MISPLACED_SHARE:
                 initial = "the run's initial terrain" if reference_initial is None else "its scan before the dig"
                 raise UserError(
                     f"{key}: {label} lies {offset:+.3g} m {'above' if offset > 0 else 'below'} {initial} "
-                    f"over the ground the run left undisturbed (median over {int(still.sum())} cells), more than "
-                    f"--change-threshold {change_threshold:g} m: every cell would count as dug; place it with "
-                    f"--transform (its z) or --fit-transform, or give --terrain-before")
+                    f"over {100 * shifted:.0f}% of the ground the run left undisturbed (median over "
+                    f"{int(still.sum())} cells), more than "
+                    f"--change-threshold {change_threshold:g} m: every cell would count as dug; "
+                    + ("the fitted placement left it there: give --transform, or --terrain-before (a scan before "
+                       "the dig fits on undisturbed ground)" if fitted else
+                       "place it with --transform (its z) or --fit-transform, or give --terrain-before"))
         if not mask.any():
             largest = max(float(np.nanmax(np.abs(dz), initial=0.0)) for dz in changes)
             raise UserError(f"--change-threshold: neither the run nor {label} changed by more than "
@@ -525,7 +534,7 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
         block, figs["terrain"] = terrain_comparison(run_dir, reference_final=ref_final, reference_initial=ref_initial,
                                                     label=label or "", change_threshold=change_threshold,
                                                     margin_m=margin_m, key="--against" if against else "--terrain",
-                                                    warnings=warnings)
+                                                    warnings=warnings, fitted=bool(fit) and against is None)
         result.update(block)
     elif terrain is not None or against is not None:
         if terrain is not None:

@@ -388,15 +388,28 @@ def check_metric_columns(metrics: list, columns: dict[str, list[str]], tools: li
 
 
 def scene_fingerprint(scene_path, sets: list[str]) -> str:
-    """What a run of the scene under these overrides depends on, by content: the resolved scene and its soil preset
-    file's content (an edited base scene or preset is not the run kept from before it)."""
+    """What a run of the scene under these overrides depends on, by content: the resolved scene and every file it
+    names (soil preset, motion CSV, terrain scan, URDF, machine config): an edited one is not the run kept from
+    before it."""
     from ..scene import load_scene, scene_to_dict
 
-    scene = load_scene(scene_path, sets)
-    text = json.dumps(scene_to_dict(scene), sort_keys=True).encode()
-    if scene.soil is not None and scene.soil.preset_file is not None:
-        text += Path(scene.soil.preset_file).read_bytes()
-    return hashlib.sha256(text).hexdigest()[:16]
+    data = scene_to_dict(load_scene(scene_path, sets))
+    digest = hashlib.sha256(json.dumps(data, sort_keys=True).encode())
+    for path in sorted(set(_named_files(data))):
+        digest.update(path.encode() + Path(path).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _named_files(value):
+    """The files a resolved scene names (its paths are absolute)."""
+    if isinstance(value, dict):
+        for v in value.values():
+            yield from _named_files(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _named_files(v)
+    elif isinstance(value, str) and value.startswith("/") and len(value) < 4096 and Path(value).is_file():
+        yield value
 
 
 def point_id(index: int, study: Study, point: dict) -> str:
@@ -479,12 +492,18 @@ def collect_metrics(run_dir: Path, metrics: list, reference: dict, errors: dict 
 
     def one(m):
         if isinstance(m, dict):
-            return csv_metric(run_dir, m["file"], m["column"], m.get("stat", "mean"), m.get("where"), m.get("t"))
+            value = csv_metric(run_dir, m["file"], m["column"], m.get("stat", "mean"), m.get("where"), m.get("t"))
+            if value is None and (run_dir / m["file"]).is_file():
+                raise UserError(f"{m['file']}: no {m['column']} samples in the rows the metric selects (its `where` "
+                                f"and its window t {m.get('t')})")
+            return value
         head, _, rest = m.partition(".")
-        if head == "manifest":
-            return _dig(json_file("manifest.json"), rest.split("."))
-        if head == "summary":
-            return _dig(json_file("summary.json"), rest.split("."))
+        if head in ("manifest", "summary"):
+            name = f"{head}.json"
+            value = _dig(json_file(name), rest.split("."))
+            if value is None and json_file(name) is not None:  # (a misspelt key reads as nothing, not as a value)
+                raise UserError(f"{name} has no {rest!r}")
+            return value
         if head == "compare":
             return _dig(comparison(), rest.split("."))
         parts = rest.split(".")
@@ -589,6 +608,15 @@ def _own_kernel_cache() -> None:
     os.environ["OPERA_TAICHI_WORKER_CACHE"] = name
 
 
+def _stored_scene(run_dir: Path):
+    """The scene fingerprint a run folder's point.json recorded (None: none, or no readable point.json)."""
+    try:
+        data = json.loads((run_dir / POINT_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return data.get("scene") if isinstance(data, dict) else None
+
+
 def finished_row(run_dir: Path, sets: list[str], scene_sha: str) -> dict | None:
     """The stored row of a run folder whose simulation of these overrides, of the scene as it is now
     (scene_fingerprint), finished (its manifest says done, whatever its metrics gave: they are measured again), else
@@ -659,17 +687,22 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
     runs.mkdir(parents=True, exist_ok=True)
     tasks = [make_task(study, i, p, runs) for i, p in enumerate(study.points)]
     rows: dict[str, dict] = {}
-    todo, finished = [], []
+    todo, finished, changed = [], [], 0
     for task in tasks:
-        for folder in sorted(runs.glob("*-" + task["id"].rsplit("-", 1)[1])):  # by content: an index may move
+        folders = sorted(runs.glob("*-" + task["id"].rsplit("-", 1)[1]))  # by content: an index may move
+        for folder in folders:
             stored = finished_row(folder, task["overrides"], task["scene_sha"])
             if stored is not None:
                 finished.append((task, folder, stored))
                 break
         else:
             todo.append(task)
+            changed += any(finished_row(f, task["overrides"], _stored_scene(f)) is not None for f in folders)
     say = (lambda *a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     say(f"study {study.name}: {len(tasks)} points, {len(finished)} finished before, {len(todo)} to run -> {study.out}")
+    if changed:
+        say(f"  {changed} of them finished before with another content of the scene or a file it names (or "
+            f"recorded without it by an older version): simulated again")
     wall0 = time.perf_counter()
     if finished:  # their simulations are kept; their metrics and comparison are this study file's, measured again
         from ..recorders import write_json
