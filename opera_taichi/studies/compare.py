@@ -259,7 +259,7 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
             if coverage < MIN_DIG_COVERAGE:
                 raise UserError(f"{key}: {label} covers {100 * coverage:.0f}% of the dig area ({where}); a comparison "
                                 f"needs at least {100 * MIN_DIG_COVERAGE:.0f}%: give a scan of the dig or check its "
-                                f"placement")
+                                f"placement and its units (metres; a scan in feet spreads 3.28 x too wide)")
             if warnings is not None:
                 _warn(warnings, f"{key}: {label} covers only {100 * coverage:.0f}% of the dig area ({where}): "
                                 f"volumes and depths are compared over the covered part only")
