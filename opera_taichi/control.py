@@ -77,6 +77,8 @@ def as_control(value, machine_names: list[str], t: float) -> Control:
 def real_number(value) -> float | None:
     """value as a float when it is one real number (a Python or NumPy scalar, a 0-d array or tensor), else None: a
     bool, a string or an array of several values is no joint target, though float() would take some of them."""
+    if type(value) is float or type(value) is int:  # (the common case, every step: no array made)
+        return float(value)
     if isinstance(value, (str, bytes)):
         return None
     try:

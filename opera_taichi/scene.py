@@ -1282,7 +1282,6 @@ def scene_reference_markdown() -> str:
     return "\n".join(lines)
 
 
-
 @contextlib.contextmanager
 def naming_the_scene(path):
     """A scene key found wrong after loading (building the model, the machine, the soil) is reported with the

@@ -19,10 +19,9 @@ A study file (paths relative to it; every key checked, errors one line naming th
 
 The study folder holds runs/<point>/ (a run folder each, with point.json: the point's row), study.csv,
 study.parquet and study.png (each metric against each parameter). When the study runs again, a point whose
-simulation finished (point.json with the same overrides of the same scene content, its soil preset file's included;
-manifest.json status done) is not simulated again, but its
-metrics and comparison are measured again from its run folder for the study file as it is now (metrics or reference
-changed); points whose simulation failed are run again. A failed run is a row with its status (bad input, diverged,
+simulation finished (point.json with the same overrides of the same scene content, every file it names included;
+manifest.json status done) is not simulated again, but its metrics and comparison are measured again from its run
+folder for the study file as it is now (metrics or reference changed); points whose simulation failed are run again. A failed run is a row with its status (bad input, diverged,
 error) and its one-line error; it never stops the study. A metric that cannot be measured (a comparison that fails)
 makes its row failed too, but keeps the simulation.
 
