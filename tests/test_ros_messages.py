@@ -299,7 +299,7 @@ def test_commands_wait_out_the_dead_time_and_the_latest_wins(machine_sim):
                                          velocity=[0.2]))
     applied_at = None
     while machine_sim.t < 0.5:
-        c = ctl.control(machine_sim, machine_sim.t + machine_sim.model.dt)
+        c = ctl.control(machine_sim, machine_sim.t_next)
         if c.machines and applied_at is None:
             applied_at = c.t
             mc = c.machines["zx120"]
@@ -323,13 +323,13 @@ def test_cmd_vel_drives_the_tracks_of_a_free_base():
         V = T["geometry_msgs/msg/Vector3"]
         gauge = sim.model.machines[0].description.tracks["gauge"]
         ctl.handle(topic, T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0), angular=V(x=0, y=0, z=0.2)))
-        c = ctl.control(sim, sim.t + sim.model.dt)
+        c = ctl.control(sim, sim.t_next)
         assert c.machines["zx120"].track_speeds == pytest.approx((0.5 - 0.1 * gauge, 0.5 + 0.1 * gauge))
         x0 = sim.machine.base_pose()[0][0]
         while sim.t < 2.0:  # a teleop's stream at 10 Hz (each command lasts bridge.command_timeout, 0.5 s)
             if sim.step_count % 50 == 0:
                 ctl.handle(topic, T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0), angular=V(x=0, y=0, z=0)))
-            sim.step(ctl.control(sim, sim.t + sim.model.dt))
+            sim.step(ctl.control(sim, sim.t_next))
         assert sim.machine.base_pose()[0][0] > x0 + 0.6
     finally:
         sim.close()
@@ -355,7 +355,7 @@ def test_speed_commands_expire_so_a_dead_controller_does_not_leave_the_machine_d
         ctl.handle(topics["boom/cmd"], _msg("std_msgs/msg/Float64", data=-0.3))
         expired_at, x, q_arm = None, [], []
         while sim.t < 2.5:
-            c = ctl.control(sim, sim.t + sim.model.dt)
+            c = ctl.control(sim, sim.t_next)
             mc = c.machines.get("zx120")
             if mc is not None and mc.track_speeds == (0.0, 0.0):
                 assert expired_at is None and mc.qd_target == {"arm_joint": 0.0}  # both at once, once
@@ -401,7 +401,7 @@ def test_a_released_emergency_stop_resumes_no_drive_given_before_it():
             for at, (key, msg) in events.items():
                 if abs(sim.t - at) < 0.5 * sim.model.dt:
                     ctl.handle(topics[key], msg)
-            sim.step(ctl.control(sim, sim.t + sim.model.dt))
+            sim.step(ctl.control(sim, sim.t_next))
             x[round(sim.t, 3)] = sim.machine.base_pose()[0][0]
         assert x[0.25] - x[0.002] > 0.02                  # it drove ...
         assert abs(x[2.5] - x[1.0]) < 0.005               # ... stood under the hold and after its release ...

@@ -128,16 +128,16 @@ def test_teleop_sliders_command_the_machine_and_pause_holds_the_loop():
         assert view.sliders[("zx120", "boom_joint")].value == pytest.approx(np.degrees(q0), abs=0.5)
         target = q0 + 0.3                                           # lower the boom by 0.3 rad
         view.sliders[("zx120", "boom_joint")].value = float(np.degrees(target))
-        ctrl = controller.control(sim, sim.t + sim.model.dt)
+        ctrl = controller.control(sim, sim.t_next)
         assert ctrl.source == "teleop"
         assert ctrl.machines["zx120"].q_target["boom_joint"] == pytest.approx(target)
         for _ in range(400):                                        # 0.4 s: the boom follows the slider
-            sim.step(controller.control(sim, sim.t + sim.model.dt))
+            sim.step(controller.control(sim, sim.t_next))
         assert sim.machine.joint_states()[0][boom] > q0 + 0.05
 
         view.running.clear()                                        # the viewer's Pause
         done = threading.Event()
-        worker = threading.Thread(target=lambda: (controller.control(sim, sim.t + sim.model.dt), done.set()))
+        worker = threading.Thread(target=lambda: (controller.control(sim, sim.t_next), done.set()))
         worker.start()
         worker.join(timeout=0.5)
         assert worker.is_alive() and not done.is_set()              # the loop waits for its next command
