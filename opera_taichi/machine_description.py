@@ -119,6 +119,41 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
         command_latency=_latency(cfg.get("command_latency", 0.0), f"{where}: command_latency"))
 
 
+@dataclass
+class JointSpec:
+    """A movable joint as a check of a recorded angle needs it."""
+    type: str                  # revolute, continuous, prismatic
+    lower: float               # rad (m); -inf for a continuous joint
+    upper: float               # rad (m); inf for a continuous joint
+    max_speed: float | None    # rad/s (m/s): the actuator's limit; None for a joint that is not actuated
+
+    @property
+    def turns(self) -> bool:
+        """Can turn past a full turn (a swing): continuous, or limits wider than one turn; its angle, unwrapped, has
+        no bound to check."""
+        return self.type != "prismatic" and not self.upper - self.lower <= 2 * math.pi + 1e-9
+
+
+def joint_specs(urdf: str | Path, config: str | Path | None = None,
+                actuator_overrides: dict[str, dict] | None = None) -> dict[str, JointSpec]:
+    """{joint: JointSpec} of the machine's movable joints, read as load_machine reads them (same files, same
+    errors), without its meshes or the cleaned URDF: cheap enough for a study that only reads a run's angles."""
+    warnings: list[str] = []
+    urdf_path, config = _resolve_urdf(urdf, config)
+    robot = _parse_urdf(urdf_path)
+    config_path = _resolve_config(config, urdf_path, robot.name, warnings)
+    cfg = _read_config(config_path) if config_path else {}
+    where = str(config_path) if config_path else "machine config"
+    links = {link.name: link for link in robot.links}
+    joints = {joint.name: joint for joint in robot.joints}
+    actuated = _actuated_joints(cfg, where, joints, _children(robot), links, urdf_path)
+    actuators = _actuators(cfg, where, actuated, joints, urdf_path, warnings)
+    _apply_overrides(actuators, actuator_overrides)
+    return {name: JointSpec(joint.type, *_limits(joint),
+                            actuators[name].max_speed if name in actuators else None)
+            for name, joint in joints.items() if joint.type in MOVABLE}
+
+
 def _latency(value, where: str) -> float:
     """Seconds >= 0."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:

@@ -10,7 +10,7 @@ import yaml
 
 from opera_taichi.errors import UserError
 from opera_taichi.kinematics import Kinematics
-from opera_taichi.machine_description import load_machine, mass_properties
+from opera_taichi.machine_description import joint_specs, load_machine, mass_properties
 from opera_taichi.paths import machines_dir
 
 from conftest import ON_CI, SHARED
@@ -200,6 +200,24 @@ def test_masses_from_a_config_replace_placeholders(tmp_path):
     assert np.diag(inertial.inertia) == pytest.approx([80 / 12 * (0.16 + 1), 80 / 12 * (0.04 + 1),
                                                        80 / 12 * (0.04 + 0.16)])
     assert desc.actuators["hinge"].gain == 4
+
+
+def test_joint_specs_tell_a_joint_that_turns_from_one_with_limits(tmp_path):
+    """What compare checks a joint log by: a continuous joint, or a revolute one whose limits span more than a turn,
+    turns (its unwrapped angle has no bound); the speed limit is the actuator's, as load_machine reads it."""
+    zx = joint_specs("zx120")
+    assert zx["swing_joint"].type == "continuous" and zx["swing_joint"].turns
+    assert not any(zx[j].turns for j in ("boom_joint", "arm_joint", "bucket_joint"))
+    desc = load_machine("zx120")
+    assert {j: zx[j].max_speed for j in desc.actuated_joints} == {j: a.max_speed for j, a in desc.actuators.items()}
+    assert joint_specs("zx120", actuator_overrides={"swing_joint": {"max_speed": 2.0}})["swing_joint"].max_speed == 2.0
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    wide = urdf.with_name("wide.urdf")
+    wide.write_text(urdf.read_text().replace('lower="-1" upper="1"', 'lower="-10" upper="10"'))
+    assert not joint_specs(urdf)["hinge"].turns and joint_specs(wide)["hinge"].turns
+    half = urdf.with_name("turn.urdf")  # exactly one turn: bounded, a log beyond it is out of the joint's range
+    half.write_text(urdf.read_text().replace('lower="-1" upper="1"', 'lower="-3.14159265" upper="3.14159265"'))
+    assert not joint_specs(half)["hinge"].turns
 
 
 # ----------------------------------------------------------------------------------------- errors

@@ -514,3 +514,81 @@ def test_a_field_dig_wider_than_the_runs_is_not_taken_for_a_misplaced_scan(tmp_p
     run_dug = np.abs(trench(gx, gy) + heave(gx, gy)) > 0.02
     still = keep & ~run_dug
     assert np.median(wide[still]) < -0.1
+
+
+# ----------------------------------------------------------------------------------------------- a swing over turns
+SWING_TURN = math.radians(400.0)  # one dig-and-dump cycle swings 400 deg one way (6.98 rad)
+
+
+def swing_cycles(t):
+    """The upper structure, unwrapped: each 12 s cycle swings SWING_TURN in 8 s (cosine profile, 1.37 rad/s at
+    most: a machine a little quicker than the zx120's 1.2 rad/s limit), then stands 4 s to dig."""
+    k, tau = np.divmod(np.asarray(t, float), 12.0)
+    return SWING_TURN * (k + 0.5 * (1.0 - np.cos(math.pi * np.minimum(tau / 8.0, 1.0))))
+
+
+def test_a_swing_over_several_turns_in_radians_compares_and_in_degrees_is_refused(tmp_path, capsys):
+    """The run is one cycle (swing 0..6.98 rad); the field log five (0..34.9 rad): beyond a turn and beyond the run,
+    which the range check alone read as degrees. The swing is continuous in the zx120's URDF, so only its rate can
+    tell: in rad/s it is the machine's, in degrees it is 57 x that."""
+    t = np.arange(0.0, 12.0, 0.01)
+    q = {"swing_joint": swing_cycles(t), "boom_joint": 0.4 * np.sin(0.5 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    tl = np.arange(0.0, 60.0, 0.02)
+
+    def log(name, swing, header="swing_joint"):
+        path = tmp_path / name
+        np.savetxt(path, np.column_stack([tl, swing, 0.4 * np.sin(0.5 * tl)]), delimiter=",", fmt="%.6f",
+                   header=f"t,{header},boom_joint", comments="")
+        return path
+
+    assert swing_cycles(tl).max() > 3 * SWING_TURN + 1.0 > 2 * math.pi  # what the range check refused
+    res = cmp.compare(run, joints=log("rad.csv", swing_cycles(tl)), out=tmp_path / "rad", figures=False)
+    swing = res["joints"]["swing_joint"]
+    assert swing["rmse_rad"] < 1e-4 and swing["lag_s"] == 0.0 and swing["rate_ratio"] == pytest.approx(1.0, 0.01)
+    assert "warnings" not in res
+    # the same log with the swing in degrees under its radian name: refused, one line naming file and column
+    code, err = _cli([run, "--joints", log("deg.csv", np.degrees(swing_cycles(tl))), "--out", tmp_path / "deg"],
+                     capsys)
+    assert code == 2 and "\n" not in err and "deg.csv: swing_joint moves at" in err
+    assert "machine's limit of 1.2 rad/s" in err and "name its column swing_joint_deg" in err
+    assert not (tmp_path / "deg" / "comparison.json").exists()
+    # ... and named as degrees, the same file compares as the radian one
+    deg = cmp.compare(run, joints=log("named.csv", np.degrees(swing_cycles(tl)), "swing_joint_deg"),
+                      out=tmp_path / "named", figures=False)
+    assert deg["joints"]["swing_joint"]["rmse_rad"] < 1e-4
+    # a swing logged wrapped to +-pi steps 2 pi in one sample at each half turn: a wrap, not a 21 rad/s swing
+    wrapped = np.angle(np.exp(1j * swing_cycles(tl)))
+    assert np.max(np.abs(np.diff(wrapped))) > 6.0
+    cmp.compare(run, joints=log("wrapped.csv", wrapped), out=tmp_path / "wrapped", figures=False)
+    # another run's joints.csv is in radians by the run folder's contract: never refused as degrees
+    five = make_run(tmp_path / "five", joints=(tl, {"swing_joint": swing_cycles(tl)}))
+    other = cmp.compare(run, against=five, out=tmp_path / "against", figures=False)
+    assert other["joints"]["swing_joint"]["rmse_rad"] < 1e-4
+
+
+def test_a_bounded_joint_in_degrees_is_refused_by_its_rate_when_its_range_cannot_tell(tmp_path, capsys):
+    """A boom logged in degrees that moves within +-5 deg (at up to 10 deg/s) stays within a turn (5 'rad'), which
+    the range check lets through; its rate, 57 x the boom's, does not."""
+    t = np.arange(0.0, 20.0, 0.01)
+    boom = math.radians(5.0) * np.sin(2.0 * t)
+    run = make_run(tmp_path / "run", joints=(t, {"boom_joint": boom}))
+    np.savetxt(tmp_path / "boom.csv", np.column_stack([t, np.degrees(boom)]), delimiter=",", fmt="%.6f",
+               header="t,boom_joint", comments="")
+    code, err = _cli([run, "--joints", tmp_path / "boom.csv", "--out", tmp_path / "c"], capsys)
+    assert code == 2 and "\n" not in err and "boom.csv: boom_joint moves at" in err
+    assert "machine's limit of 0.7 rad/s" in err
+
+
+def test_a_run_whose_machine_cannot_be_read_falls_back_to_the_range_check_and_says_so(tmp_path, capsys):
+    t = np.arange(0.0, 12.0, 0.01)
+    run = make_run(tmp_path / "run", joints=(t, {"swing_joint": swing_cycles(t)}))
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["scene"]["machine"]["urdf"] = str(tmp_path / "moved" / "zx120.urdf")  # a run folder from elsewhere
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    tl = np.arange(0.0, 60.0, 0.02)
+    np.savetxt(tmp_path / "rad.csv", np.column_stack([tl, swing_cycles(tl)]), delimiter=",", fmt="%.6f",
+               header="t,swing_joint", comments="")
+    code, err = _cli([run, "--joints", tmp_path / "rad.csv", "--out", tmp_path / "c"], capsys)
+    assert code == 2 and "warning: RUN_DIR: the run's machine description cannot be read" in err
+    assert "zx120.urdf does not exist" in err and "a log in degrees? name its column swing_joint_deg" in err

@@ -18,6 +18,11 @@ Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial
   it.
 Joints (a log with `t` and joints in rad or `_deg`, a ROS bag's sensor_msgs/JointState, or the other run's
 joints.csv), on their common time span resampled at `JOINT_DT`:
+- a log in degrees under radian names is refused: a joint with limits (boom, arm, bucket) that reaches beyond a full
+  turn and far beyond the run; any revolute joint that moves faster than RATE_MARGIN x its actuator's limit (the run's
+  machine description, read from the files its manifest names). A joint that turns without limit (a swing, continuous
+  in the URDF) is judged by its rate alone: unwrapped over several turns, its angle has no bound; a run against
+  another run is not checked (its joints.csv is in radians);
 - rmse_rad: RMS of run minus reference; lag_s: the shift that best aligns the two (cross-correlation of the
   mean-removed angles, positive = the run is late); rate_ratio: the 90th percentile of the run's |angular rate| over
   the reference's (0.5 = the run moves at half the real rate).
@@ -43,6 +48,13 @@ MAX_LAG_S = 5.0            # s, the largest lag searched
 STILL_RATE = 1e-3          # rad/s: a reference joint this slow (90th percentile) stands still: no rate ratio
 STILL_RANGE = math.radians(2.0)  # rad: a joint whose log moves less than this (5-95th percentile) stands still: its
                                  # rate and lag would be its sensor noise's (0.2 deg of noise read a ratio of 1e-4)
+RATE_MARGIN = 3.0          # a joint a log shows moving faster than this many times its actuator's limit (the median
+                           # while it moves) is not in rad/s: degrees read 57 x; a machine quicker than its catalogue
+                           # figure stays well under
+MOVING_SHARE = 0.5         # ...over the samples faster than this share of the limit: a still joint's sensor noise of
+                           # 0.2 deg, read as rad, moves it at ~0.2 rad/s (a floor of 0.24 rad/s for the swing let a
+                           # log in degrees that stood still for most of it through)
+MIN_MOVING_S = 1.0         # s: a joint that moves for less than this in the log gives no evidence of its units
 CLOCK_TIME_S = 1e6         # s: a CSV log whose t starts later than this (11.6 days) holds clock time (epoch seconds)
 FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
 MAX_VERTICAL_OFFSET_M = 2.0  # a placed scan this far above/below the run's terrain has not been placed
@@ -380,19 +392,98 @@ def run_joints(run_dir: Path, key: str = "RUN_DIR") -> tuple[np.ndarray, dict[st
     return t, {name[:-2]: np.asarray(v, float) for name, v in cols.items() if name.endswith(".q")}
 
 
+def machine_joints(run_dir: Path) -> tuple[dict | None, str | None]:
+    """({joints.csv column prefix: JointSpec}, None) of the run's machines, from the URDF and config its manifest's
+    scene names (with the scene's actuator overrides); (None, why) when they cannot be read (a run folder moved to
+    another install, a manifest without a scene)."""
+    from ..machine_description import joint_specs
+    from ..scene import MachineConfig
+
+    try:
+        manifest = json.loads((run_dir / "manifest.json").read_text())
+        scene = manifest.get("scene") or {}
+        entries = [scene["machine"]] if scene.get("machine") else list(scene.get("machines") or [])
+        names = list(manifest.get("machines") or [])
+        out = {}
+        for i, m in enumerate(entries):
+            # the resolved scene names its URDF; a hand-made manifest without one means the scene's default machine
+            urdf = m.get("urdf") or MachineConfig.model_fields["urdf"].default
+            overrides = {j: {k: v for k, v in a.items() if v is not None}
+                         for j, a in (m.get("actuators") or {}).items()}
+            specs = joint_specs(urdf, m.get("config"), overrides)
+            if len(entries) > 1:  # joints.csv's columns are <machine>.<joint> with several machines
+                name = names[i] if i < len(names) else m.get("name")
+                if not name:
+                    continue
+                specs = {f"{name}.{j}": v for j, v in specs.items()}
+            out.update(specs)
+    except UserError as exc:
+        return None, str(exc)
+    except (OSError, ValueError, AttributeError, TypeError, KeyError) as exc:
+        return None, f"{run_dir / 'manifest.json'}: no machine in its scene ({type(exc).__name__}: {exc})"
+    return out, None
+
+
+def _unwrap_isolated(q: np.ndarray) -> np.ndarray:
+    """q with its isolated steps of about a turn taken out: a swing logged wrapped to +-pi steps 2 pi in one sample
+    between small steps (2 pi in 0.3 s reads 21 rad/s). A log in degrees stepping 6 deg a sample steps about as much
+    in the samples beside it (a swing cannot start or stop within a sample): it keeps its steps."""
+    d = np.diff(q)
+    if d.size < 2:
+        return q
+    a = np.abs(d)
+    beside = np.maximum(np.r_[0.0, a[:-1]], np.r_[a[1:], 0.0])
+    wrap = (np.abs(a - 2 * math.pi) < math.pi / 2) & (beside < a / 4)
+    if not wrap.any():
+        return q
+    return np.r_[q[0], q[0] + np.cumsum(np.where(wrap, d - np.sign(d) * 2 * math.pi, d))]
+
+
+def moving_rate(t: np.ndarray, q: np.ndarray, floor: float) -> tuple[float, float]:
+    """(median |rate| over the samples faster than floor, seconds of them) of a log's joint, rated as the comparison
+    rates it (RATE_SMOOTHING_S) on a regular grid (at most 2e6 samples: a long log in milliseconds stays cheap)."""
+    span = float(t[-1] - t[0])
+    dt = max(JOINT_DT, span / 2e6)
+    grid = np.arange(t[0], t[-1] + 1e-12, dt)
+    rate = _rate(np.interp(grid, t, q), max(1, int(round(RATE_SMOOTHING_S / dt))), dt)
+    fast = rate[rate > floor]
+    return (float(np.median(fast)) if fast.size else 0.0), fast.size * dt
+
+
+def check_units(j: str, t_ref, q_ref, q_run, spec, label: str) -> None:
+    """UserError when the log's joint j reads as degrees under a radian name: a joint with limits (or of unknown
+    kind) beyond a full turn and far beyond the run's angles; a revolute joint of known speed limit moving faster
+    than RATE_MARGIN x that limit. A joint that turns without limit (a swing) is judged by its rate alone: unwrapped
+    over several turns, 7 rad is a turn and a bit, not 7 degrees."""
+    turns = spec is not None and spec.turns
+    if not turns:
+        # a log in degrees under radian names reads about 57 x the run's angles, beyond a full turn
+        big, run_big = float(np.max(np.abs(q_ref))), float(np.max(np.abs(q_run)))
+        if big > max(2 * math.pi, 3 * run_big + 1.0):
+            raise UserError(f"--joints: {label}: {j} reaches {big:.4g} rad (the run at most {run_big:.3g} rad): "
+                            f"a log in degrees? name its column {j}_deg")
+    if spec is None or spec.type == "prismatic" or not spec.max_speed:
+        return
+    rate, moving_s = moving_rate(t_ref, _unwrap_isolated(q_ref) if turns else q_ref, MOVING_SHARE * spec.max_speed)
+    if moving_s >= MIN_MOVING_S and rate > RATE_MARGIN * spec.max_speed:
+        raise UserError(f"--joints: {label}: {j} moves at {rate:.4g} rad/s (median over the {moving_s:.3g} s it "
+                        f"moves), {rate / spec.max_speed:.0f} x the machine's limit of {spec.max_speed:.3g} rad/s: a "
+                        f"log in degrees? name its column {j}_deg (or is its t not in seconds?)")
+
+
 def _smooth(v: np.ndarray, n: int) -> np.ndarray:
     if n <= 1:
         return v
     return np.convolve(np.pad(v, (n // 2, n - 1 - n // 2), mode="edge"), np.ones(n) / n, mode="valid")
 
 
-def _rate(v: np.ndarray, n: int) -> np.ndarray:
-    """|dv/dt| as the difference over n samples of v averaged over n samples (the noise of a per-sample
-    derivative is what it measures otherwise)."""
+def _rate(v: np.ndarray, n: int, dt: float = JOINT_DT) -> np.ndarray:
+    """|dv/dt| of v sampled every dt, as the difference over n samples of v averaged over n samples (the noise of a
+    per-sample derivative is what it measures otherwise)."""
     sm = _smooth(v, n)
     if len(sm) <= n:
-        return np.abs(np.gradient(sm, JOINT_DT))
-    return np.abs(sm[n:] - sm[:-n]) / (n * JOINT_DT)
+        return np.abs(np.gradient(sm, dt)) if len(sm) > 1 else np.zeros_like(sm)
+    return np.abs(sm[n:] - sm[:-n]) / (n * dt)
 
 
 def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
@@ -411,19 +502,18 @@ def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
 
 
 def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
-                     warnings: list | None = None) -> tuple[dict, dict]:
+                     warnings: list | None = None, specs: dict | None = None,
+                     check: bool = True) -> tuple[dict, dict]:
     """Per-joint rmse, lag and rate ratio on the common time span; the arrays for the figure. A log in other units
-    than the run's (degrees under radian names) is refused; one whose time looks like milliseconds is warned of."""
+    than the run's (degrees under radian names) is refused (check_units; `specs`: the run's machine_joints, None
+    when unknown; check=False for another run's joints.csv, radians by the run folder's contract); one whose time
+    looks like milliseconds is warned of."""
     joints = [j for j in run if j in ref]
     if not joints:
         raise UserError(f"--joints: {ref_label} names no joint of the run (run: {', '.join(run)}; log: "
                         f"{', '.join(ref)})")
-    for j in joints:
-        # a log in degrees under radian names reads about 57 x the run's angles, beyond a full turn
-        big, run_big = float(np.max(np.abs(ref[j]))), float(np.max(np.abs(run[j])))
-        if big > max(2 * math.pi, 3 * run_big + 1.0):
-            raise UserError(f"--joints: {ref_label}: {j} reaches {big:.4g} rad (the run at most {run_big:.3g} rad): "
-                            f"a log in degrees? name its column {j}_deg")
+    for j in joints if check else ():
+        check_units(j, t_ref, ref[j], run[j], (specs or {}).get(j), ref_label)
     t0, t1 = max(t_run[0], t_ref[0]), min(t_run[-1], t_ref[-1])
     if not t1 - t0 > 2 * JOINT_DT:
         raise UserError(f"--joints: {ref_label} spans t {t_ref[0]:.6g}..{t_ref[-1]:.6g} s, the run "
@@ -548,7 +638,15 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
             t_ref, q_ref = run_joints(Path(against), "--against")
             ref_label = f"run {Path(against).name}"
         t_run, q_run = run_joints(run_dir)
-        block, figs["joints"] = joint_comparison(t_run, q_run, t_ref, q_ref, ref_label, warnings)
+        specs = None
+        if joints is not None:
+            specs, why = machine_joints(run_dir)
+            if specs is None:
+                _warn(warnings, f"RUN_DIR: the run's machine description cannot be read ({why}): {ref_label} is "
+                                f"checked for degrees by its angles' range only (a swing over a full turn reads as "
+                                f"degrees)")
+        block, figs["joints"] = joint_comparison(t_run, q_run, t_ref, q_ref, ref_label, warnings, specs,
+                                                 check=joints is not None)
         figs["joints"]["label"] = ref_label
         result.update(block)
     if warnings:
