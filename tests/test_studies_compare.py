@@ -560,7 +560,13 @@ def test_a_swing_over_several_turns_in_radians_compares_and_in_degrees_is_refuse
     # a swing logged wrapped to +-pi steps 2 pi in one sample at each half turn: a wrap, not a 21 rad/s swing
     wrapped = np.angle(np.exp(1j * swing_cycles(tl)))
     assert np.max(np.abs(np.diff(wrapped))) > 6.0
-    cmp.compare(run, joints=log("wrapped.csv", wrapped), out=tmp_path / "wrapped", figures=False)
+    res = cmp.compare(run, joints=log("wrapped.csv", wrapped), out=tmp_path / "wrapped", figures=False)
+    # ... compared unwrapped, on the run's turn: the same motion (the CSV's 6 decimals and the wrap's rounding)
+    assert res["joints"]["swing_joint"]["rmse_rad"] < 1e-4
+    # a log whose zero is a turn away (an encoder counting from another turn) is the same motion too
+    res = cmp.compare(run, joints=log("turn.csv", swing_cycles(tl) - 4 * math.pi), out=tmp_path / "turn",
+                      figures=False)
+    assert res["joints"]["swing_joint"]["rmse_rad"] < 1e-4
     # another run's joints.csv is in radians by the run folder's contract: never refused as degrees
     five = make_run(tmp_path / "five", joints=(tl, {"swing_joint": swing_cycles(tl)}))
     other = cmp.compare(run, against=five, out=tmp_path / "against", figures=False)

@@ -22,7 +22,8 @@ joints.csv), on their common time span resampled at `JOINT_DT`:
   turn and far beyond the run; any revolute joint that moves faster than RATE_MARGIN x its actuator's limit (the run's
   machine description, read from the files its manifest names). A joint that turns without limit (a swing, continuous
   in the URDF) is judged by its rate alone: unwrapped over several turns, its angle has no bound; a run against
-  another run is not checked (its joints.csv is in radians);
+  another run is not checked (its joints.csv is in radians); a log of such a joint is unwrapped (a wrap to +-pi is
+  a one-sample step of a turn) and put on the run's turn at the start of the common span;
 - rmse_rad: RMS of run minus reference; lag_s: the shift that best aligns the two (cross-correlation of the
   mean-removed angles, positive = the run is late); rate_ratio: the 90th percentile of the run's |angular rate| over
   the reference's (0.5 = the run moves at half the real rate).
@@ -531,7 +532,13 @@ def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
     arrays = {"t": t, "joints": {}}
     for j in joints:
         a = np.interp(t, t_run, run[j])
-        b = np.interp(t, t_ref, ref[j])
+        spec = (specs or {}).get(j)
+        if spec is not None and spec.turns:
+            # a swing logged wrapped to +-pi, or from another zero turn: unwrapped and put on the run's turn
+            b = np.interp(t, t_ref, _unwrap_isolated(ref[j]))
+            b += 2 * math.pi * round(float(a[0] - b[0]) / (2 * math.pi))
+        else:
+            b = np.interp(t, t_ref, ref[j])
         moving = float(np.percentile(b, 95) - np.percentile(b, 5)) > STILL_RANGE
         lag = best_lag(a, b, max_lag) if moving else None
         ra, rb = _rate(a, n_smooth), _rate(b, n_smooth)
