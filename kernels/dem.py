@@ -80,6 +80,9 @@ BLOCK = 64  # particles per reduction block: sums per block, then added in block
 # under 2^53 quanta: 8.6e9 N (N m) summed over one advance's substeps, 8.4e6 kg lost over a run
 WRENCH_QUANTUM = 2.0 ** -20   # N, N m: 1e-5 of a 1 cm grain's weight (0.1 N)
 MASS_QUANTUM = 2.0 ** -30     # kg
+# A lost mass restored off this grid (a CPU layout's checkpoint) stays order-independent: its terms are positive
+# multiples of MASS_QUANTUM, at least 4 ulp of a total under 2^21 kg, so the sum is exact within a binade and the one
+# rounding where it crosses into the next does not depend on which terms came first (checked by enumeration).
 # The step kernel's blocks. Taichi 1.7's CPU thread pool hands out a parallel loop in tasks of 512 iterations
 # whatever the loop's block_dim (measured: with 560 iterations one thread ran 0-511, the other 512-559), so the step
 # loop gives each block STEP_SPREAD iterations, all but one empty: a task is then 32 blocks. Blocks are sized for
