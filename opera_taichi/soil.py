@@ -202,8 +202,9 @@ def read_preset_file(path) -> tuple[str | None, dict]:
     return base, values
 
 
-def resolve_scene_soil(soil_cfg) -> SoilBulk:
-    """A scene's soil section as bulk parameters: the preset, the preset file's values, then the overrides."""
+def scene_soil_values(soil_cfg) -> tuple[str, dict]:
+    """A scene's soil section as (the preset it builds on, the values given over it: the preset file's, then the
+    overrides), keys and units as given; resolve_soil turns them into bulk parameters."""
     base, values = (None, {}) if getattr(soil_cfg, "preset_file", None) is None else \
         read_preset_file(soil_cfg.preset_file)
     overrides = dict(soil_cfg.overrides or {})
@@ -211,7 +212,12 @@ def resolve_scene_soil(soil_cfg) -> SoilBulk:
         twin = key[:-4] if key.endswith("_deg") else key + "_deg"
         if key in overrides or twin in overrides:
             values.pop(key)
-    return resolve_soil(base or soil_cfg.preset, {**values, **overrides})
+    return base or soil_cfg.preset, {**values, **overrides}
+
+
+def resolve_scene_soil(soil_cfg) -> SoilBulk:
+    """A scene's soil section as bulk parameters: the preset, the preset file's values, then the overrides."""
+    return resolve_soil(*scene_soil_values(soil_cfg))
 
 
 def calibrated_rolling_resistance(friction_angle: float) -> float:

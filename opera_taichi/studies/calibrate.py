@@ -504,21 +504,18 @@ def write_preset(path: Path, study, best: dict, loss: float, cfg: dict, wall: fl
     import yaml
 
     from ..scene import load_scene
-    from ..soil import read_preset_file, resolve_scene_soil
+    from ..soil import resolve_soil, scene_soil_values
     from .study import overrides
 
     soil = load_scene(study.scene, overrides(study, best)).soil  # the best trial's own scene
-    base, values = (None, {}) if soil.preset_file is None else read_preset_file(soil.preset_file)
-    given = dict(soil.overrides or {})  # layered as resolve_scene_soil does: an override replaces the file's value
-    values = {**{k: v for k, v in values.items()  # in either unit
-                 if k not in given and (k[:-4] if k.endswith("_deg") else k + "_deg") not in given}, **given}
-    radius = values.pop("radius", None)  # a resolution, not a soil property: a scene keeps its own
-    radius = float(radius) if radius is not None else resolve_scene_soil(soil).radius
+    preset, values = scene_soil_values(soil)  # the values as the trial's soil was resolved from them
+    radius = resolve_soil(preset, values).radius
+    values.pop("radius", None)  # a resolution, not a soil property: a scene keeps its own
     calibration = {"study": str(study.source), "scene": str(study.scene), "objective": cfg["spec"]["objective"],
                    "loss": float(loss), "trials": cfg["trials"], "radius_m": radius, "wall_time_s": round(wall, 1)}
     if soil.preset_file is not None:
         calibration["built_on"] = str(soil.preset_file)
-    data = {"preset": base or soil.preset, **{k: None if v is None else float(v) for k, v in values.items()},
+    data = {"preset": preset, **{k: None if v is None else float(v) for k, v in values.items()},
             "calibration": calibration}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("# Soil preset written by `opera-taichi calibrate`; use it with soil.preset_file in a scene.\n"
