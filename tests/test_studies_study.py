@@ -50,6 +50,50 @@ def test_every_point_and_both_ends_of_a_range_are_checked_before_any_run(tmp_pat
     _refused(tmp_path, capsys, body + "metrics: [manifest.particles]\n", words)
 
 
+def test_an_integer_key_is_sampled_as_integers_within_its_bounds(tmp_path):
+    """sim.seed (an integer in the scene schema) sampled by random or lhs: whole numbers low..high inclusive, each
+    point's scene loads with its own seed (a sampled float was refused: "expected an integer, got 2.0"); a float key
+    beside it stays a float."""
+    from opera_taichi.scene import load_scene
+    from opera_taichi.studies.study import make_task
+
+    path = tmp_path / "s.yaml"
+    path.write_text(BASE + "parameters: {sim.seed: {low: 2, high: 5}, soil.settle_time: {low: 0.2, high: 0.3}}\n"
+                           "sampling: random\nsamples: 24\nmetrics: [manifest.particles]\n")
+    study = load_study(path, tmp_path / "out")
+    seeds = [p["sim.seed"] for p in study.points]
+    assert all(type(s) is int for s in seeds) and set(seeds) == {2, 3, 4, 5}  # both ends drawn, nothing outside
+    assert all(type(p["soil.settle_time"]) is float for p in study.points)
+    assert len({p["soil.settle_time"] for p in study.points}) == 24
+    # lhs: one point per stratum, so 4 samples over 4 integers take each once
+    path.write_text(path.read_text().replace("sampling: random", "sampling: lhs").replace("samples: 24", "samples: 4"))
+    study = load_study(path, tmp_path / "out")
+    assert sorted(p["sim.seed"] for p in study.points) == [2, 3, 4, 5]
+    tasks = [make_task(study, i, p, tmp_path / "runs") for i, p in enumerate(study.points)]
+    assert len({t["id"] for t in tasks}) == len({t["run_dir"] for t in tasks}) == 4  # four distinct runs
+    for point, task in zip(study.points, tasks):
+        assert f"sim.seed={point['sim.seed']}" in task["overrides"]
+        assert load_scene(task["scene"], task["overrides"]).sim.seed == point["sim.seed"]
+    # a grid range over it: whole steps as integers
+    from opera_taichi.studies.study import _parameter
+
+    assert [(v, type(v)) for v in _parameter("sim.seed", {"range": [0, 4], "num": 3}, "s").values] == \
+        [(0, int), (2, int), (4, int)]
+
+
+@pytest.mark.parametrize("body, words", [
+    ("parameters: {sim.seed: {low: 0, high: 2.5}}\nsampling: random\nsamples: 2\n",
+     "parameters.sim.seed: the scene takes integers here; expected whole-number low and high, got 2.5"),
+    ("parameters: {sim.seed: {low: 0.5, high: 3}}\nsampling: lhs\nsamples: 2\n",
+     "parameters.sim.seed: the scene takes integers here; expected whole-number low and high, got 0.5"),
+    ("parameters: {sim.seed: {range: [0, 4], num: 4}}\n",
+     "parameters.sim.seed.range: the scene takes integers here; expected whole-number steps (range [0, 4] with num 4), "
+     "got 1.33"),
+])
+def test_an_integer_key_with_bounds_that_are_not_integers_is_refused(tmp_path, capsys, body, words):
+    _refused(tmp_path, capsys, body + "metrics: [manifest.particles]\n", words)
+
+
 @pytest.mark.parametrize("extra, words", [
     ("reference: {terrain: scan.xyz, transform: '1,2'}",
      "reference.transform: expected x,y,z,yaw_deg[,roll_deg,pitch_deg] (m, degrees), got '1,2'"),

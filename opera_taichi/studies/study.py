@@ -17,6 +17,9 @@ A study file (paths relative to it; every key checked, errors one line naming th
                 against: null}         # what compare.* metrics compare against
     out: studies/blade_depth           # the study folder (relative to the current directory); --out overrides
 
+A key the scene types as an integer (sim.seed) is sampled as integers, low..high inclusive (lhs: each integer an
+equal share of the strata); its low, high and range steps must be whole numbers.
+
 The study folder holds runs/<point>/ (a run folder each, with point.json: the point's row), study.csv,
 study.parquet and study.png (each metric against each parameter). When the study runs again, a point whose
 simulation finished (point.json with the same overrides of the same scene content, every file it names included;
@@ -71,6 +74,7 @@ class Parameter:
     low: float | None = None
     high: float | None = None
     log: bool = False
+    integer: bool = False         # the scene types the key as an integer (sim.seed): sampled as integers
 
 
 @dataclass
@@ -108,8 +112,35 @@ def _path(base: Path, value, key: str, label: str, must_exist: bool = True) -> P
     return p.resolve()
 
 
+def integer_key(path: str) -> bool:
+    """Whether the scene schema types this --set path as an integer (sim.seed), read from its pydantic models."""
+    from ..scene import Scene, _child, _strip, _union_members
+
+    annotation = Scene
+    for part in path.split("."):
+        members = _union_members(annotation)
+        if members:  # motion: whichever member has the key
+            annotation = next((m for m in members.values() if part in m.model_fields), None)
+            if annotation is None:
+                return False
+        annotation = _child(annotation, int(part) if part.isdigit() else part)
+        if annotation is None:
+            return False  # not a key of the scene: loading the scene says so, naming it
+    return _strip(annotation) is int
+
+
+def _whole(key: str, what: str, values: list, label: str) -> list[int]:
+    """An integer key's bounds or range values as ints (2.0 is 2); anything else is refused naming the key."""
+    bad = [v for v in values if not float(v).is_integer()]
+    if bad:
+        raise UserError(f"{label}: {key}: the scene takes integers here; expected whole-number {what}, "
+                        f"got {bad[0]!r}")
+    return [int(v) for v in values]
+
+
 def _parameter(path: str, spec, label: str, bounds_only: bool = False) -> Parameter:
     key = f"parameters.{path}"
+    integer = integer_key(path)
     if isinstance(spec, list):
         if not spec:
             raise UserError(f"{label}: {key}: an empty list")
@@ -130,6 +161,10 @@ def _parameter(path: str, spec, label: str, bounds_only: bool = False) -> Parame
         num = spec.get("num", 3)
         if not (isinstance(num, int) and not isinstance(num, bool) and num >= 2):
             raise UserError(f"{label}: {key}.num: expected an integer >= 2, got {num!r}")
+        if integer:
+            values = _whole(f"{key}.range", f"steps (range {rng} with num {num})",
+                            [float(v) for v in np.linspace(rng[0], rng[1], num)], label)
+            return Parameter(path, values=values, low=values[0], high=values[-1], integer=True)
         return Parameter(path, values=[float(v) for v in np.linspace(rng[0], rng[1], num)], low=float(rng[0]),
                          high=float(rng[1]))
     lo, hi = spec.get("low"), spec.get("high")
@@ -138,6 +173,9 @@ def _parameter(path: str, spec, label: str, bounds_only: bool = False) -> Parame
     log = spec.get("log", False)
     if not isinstance(log, bool) or (log and lo <= 0):
         raise UserError(f"{label}: {key}.log: expected true or false (true needs low > 0), got {log!r}")
+    if integer:
+        lo, hi = _whole(key, "low and high", [lo, hi], label)
+        return Parameter(path, low=lo, high=hi, log=log, integer=True)
     return Parameter(path, low=float(lo), high=float(hi), log=log)
 
 
@@ -301,7 +339,13 @@ def expand_points(study: Study, label: str) -> list[dict]:
     return [{p.path: scale(p, u[k]) for k, p in enumerate(ps)} for u in unit]
 
 
-def scale(p: Parameter, u: float) -> float:
+def scale(p: Parameter, u: float) -> float | int:
+    """The value at u in [0, 1) of the parameter's range; an integer key's over low..high inclusive, each integer an
+    equal share of u (so lhs strata stay strata)."""
+    if p.integer:
+        lo, hi = p.low, p.high + 1  # floor() of [low, high + 1) is low..high
+        x = math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))) if p.log else lo + u * (hi - lo)
+        return int(min(p.high, max(p.low, math.floor(x))))  # u = 1 (a bound) is high
     if p.log:
         return float(math.exp(math.log(p.low) + u * (math.log(p.high) - math.log(p.low))))
     return float(p.low + u * (p.high - p.low))
