@@ -1,9 +1,12 @@
-"""study and calibrate on a real Dask LocalCluster (2 worker processes, each its own Taichi runtime): a 4-point
+"""study and calibrate on a real Dask LocalCluster (2 worker processes, each its own Taichi runtime; one cluster for
+the whole file, reached with --scheduler, so each worker starts Taichi and loads its kernels once): a 4-point
 friction study of a small blade cut (resumed: finished simulations are kept and measured again for the study file as
 it is now; a point that fails, in its simulation or in its comparison, is a row, not the end), and a
-6-trial calibration that recovers the friction angle of its own reference run from the run's draft-force curve.
+4-trial calibration (3 sampled, 1 refined) that recovers the friction angle of its own reference run from the run's
+draft-force curve.
 
-Each run is a 1.2 m x 0.4 m x 0.35 m sand bed of 4 cm grains (about 2,400 particles) cut 0.2 m deep for 1 s."""
+Each run is a 1.2 m x 0.4 m x 0.35 m sand bed of 4 cm grains (about 2,400 particles) cut 0.2 m deep at 1 m/s for
+0.6 s: the blade enters the bed at about 0.1 s, and the draft is read from 0.25 s on, once the cut is under way."""
 from __future__ import annotations
 
 import csv
@@ -27,20 +30,34 @@ TRUE_FRICTION_DEG = 32.0
 BASE = f"""
 scene: {ROOT / 'scenes' / 'blade_cut.yaml'}
 set:
-  sim.duration: 1.0
+  sim.duration: 0.6
   soil.overrides.radius: 0.02
   soil.settle_time: 0.5
   soil.bed: [{{min: [0.0, -0.2, -0.35], max: [1.2, 0.2, 0.0]}}]
   soil.domain: {{min: [-0.3, -0.2, -0.4], max: [1.6, 0.2, 0.8]}}
   tools.0.start: [1.3, 0.0, 0.2]
-  tools.0.velocity: [-0.6, 0.0, 0.0]
+  tools.0.velocity: [-1.0, 0.0, 0.0]
   output.plots: false
   output.wrench_rate: 100
 """
 
 
 @pytest.fixture(scope="module")
-def study_dir(tmp_path_factory):
+def scheduler():
+    """The address of a LocalCluster of 2 single-threaded worker processes, shared by this file's commands (a command
+    making its own LocalCluster, --workers, is run by test_studies_calibrate.py)."""
+    import logging
+
+    from dask.distributed import LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                           silence_logs=logging.ERROR)
+    yield cluster.scheduler_address
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def study_dir(tmp_path_factory, scheduler):
     """The 4-point study, run once for this file's tests."""
     folder = tmp_path_factory.mktemp("study")
     (folder / "friction.yaml").write_text(BASE + f"""
@@ -49,9 +66,10 @@ parameters:
   soil.overrides.friction_angle_deg: [26, 29, {TRUE_FRICTION_DEG:g}, 35]
 sampling: grid
 metrics: [wrench.blade.fx.mean, manifest.particles, manifest.real_time_factor,
-          {{name: draft_N, file: tool_wrench.csv, column: fx, where: {{tool: blade}}, stat: mean, t: [0.35, 1.0]}}]
+          {{name: draft_N, file: tool_wrench.csv, column: fx, where: {{tool: blade}}, stat: mean, t: [0.25, 0.6]}}]
 """)
-    code = main(["study", str(folder / "friction.yaml"), "--workers", "2", "--out", str(folder / "out"), "--quiet"])
+    code = main(["study", str(folder / "friction.yaml"), "--scheduler", scheduler, "--out", str(folder / "out"),
+                 "--quiet"])
     assert code == 0
     return folder
 
@@ -61,7 +79,7 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
-def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, capsys):
+def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, scheduler, capsys):
     import pyarrow.parquet as pq
 
     out = study_dir / "out"
@@ -85,7 +103,7 @@ def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, capsys):
     spec = spec.replace("metrics: [", "metrics: [compare.terrain_rmse_m, ")
     (study_dir / "more.yaml").write_text(spec + "reference: {terrain: far.xyz}\n")
     simulated = {r["point"]: (Path(r["run_dir"]) / "manifest.json").stat().st_mtime_ns for r in rows}
-    code = main(["study", str(study_dir / "more.yaml"), "--workers", "1", "--out", str(out)])
+    code = main(["study", str(study_dir / "more.yaml"), "--scheduler", scheduler, "--out", str(out)])
     assert code == 1  # no point could be measured
     err = capsys.readouterr().err
     assert "5 points, 4 finished before, 1 to run" in err and "error: study: all 5 points failed" in err
@@ -110,13 +128,13 @@ def test_study_on_a_local_cluster_table_plots_and_resume(study_dir, capsys):
         assert json.loads((Path(r["run_dir"]) / "point.json").read_text())["row"]["status"] == "done"
 
 
-def test_a_study_none_of_whose_points_finished_exits_1(study_dir, capsys):
+def test_a_study_none_of_whose_points_finished_exits_1(study_dir, scheduler, capsys):
     # its table says why: here the bed of the 32 deg point, from the cache, is stopped by a speed limit its settled
     # grains exceed at once
     spec = (study_dir / "friction.yaml").read_text().replace(f"[26, 29, {TRUE_FRICTION_DEG:g}, 35]",
                                                               f"[{TRUE_FRICTION_DEG:g}]\n  soil.max_speed: [1e-6]")
     (study_dir / "none.yaml").write_text(spec.replace("name: friction", "name: none"))
-    code = main(["study", str(study_dir / "none.yaml"), "--workers", "1", "--out", str(study_dir / "none")])
+    code = main(["study", str(study_dir / "none.yaml"), "--scheduler", scheduler, "--out", str(study_dir / "none")])
     assert code == 1
     assert "error: study: all 1 points failed" in capsys.readouterr().err
     assert [r["status"] for r in _rows(study_dir / "none" / "study.csv")] == ["diverged"]
@@ -171,7 +189,7 @@ def test_study_bad_input_is_one_line(tmp_path, capsys):
         assert words in err and "\n" not in err, err
 
 
-def test_calibration_recovers_the_friction_angle_of_its_reference(study_dir, tmp_path):
+def test_calibration_recovers_the_friction_angle_of_its_reference(study_dir, scheduler, tmp_path):
     reference = Path(_rows(study_dir / "out" / "study.csv")[2]["run_dir"])  # the 32 deg point
     shutil.copy(reference / "tool_wrench.csv", tmp_path / "measured_force.csv")
     (tmp_path / "calibrate.yaml").write_text(BASE + """
@@ -179,16 +197,17 @@ name: friction_fit
 calibrate:
   parameters:
     soil.overrides.friction_angle_deg: {low: 24, high: 40}
-  trials: 6
+  trials: 4
   sampler: qmc
   objective: force
-  force: {file: measured_force.csv, tool: blade, column: fx, t: [0.35, 1.0], smooth_s: 0.2}
+  force: {file: measured_force.csv, tool: blade, column: fx, t: [0.25, 0.6], smooth_s: 0.2}
   preset_file: fitted_sand.yaml
 """)
-    code = main(["calibrate", str(tmp_path / "calibrate.yaml"), "--workers", "2", "--out", str(tmp_path / "out")])
+    code = main(["calibrate", str(tmp_path / "calibrate.yaml"), "--scheduler", scheduler, "--out",
+                 str(tmp_path / "out")])
     assert code == 0
     result = json.loads((tmp_path / "out" / "calibration.json").read_text())
-    assert result["trials"] == 6
+    assert result["trials"] == 4
     fitted = result["best_parameters"]["soil.overrides.friction_angle_deg"]
     assert abs(fitted - TRUE_FRICTION_DEG) <= 3.0, result
     import yaml
