@@ -411,10 +411,30 @@ def test_resolution_study_gates_follow_the_issue(tmp_path):
     assert gates["blade a90 d0.3, 8 grains across d: draft / FEE"]["passed"] is False
     assert gates["blade draft ~ d^2 (d 0.3 vs 0.2), 4 grains across d"]["passed"] is True
     assert gates["critical height, dirt, coarse: / Culmann"]["passed"] is False
-    assert gates["passive wall H0.3, 4 grains across H: thrust / Rankine"]["passed"] is None
+    wall = "passive wall H0.3, 4 grains across H: thrust / Rankine, mean of 3 packings"
+    assert gates[wall]["passed"] is None
+    # the wall gate takes the mean of its three packings: 1.25, 0.75 and 1.0 x pass (each alone would not say so)
+    results.update({f"passive_wall_H0.3_n4_seed{s}": run(r * 2769, 2769) for s, r in enumerate((1.25, 0.75, 1.0))})
+    gates = {g["label"]: g for g in resolution.study_gates(results)}
+    assert gates[wall]["passed"] is True and gates[wall]["measured"] == pytest.approx(1.0)
+    results["passive_wall_H0.3_n4_seed2"] = run(0.2 * 2769, 2769)   # mean 0.73 x
+    assert {g["label"]: g for g in resolution.study_gates(results)}[wall]["passed"] is False
+    del results["passive_wall_H0.3_n4_seed1"]   # a packing not run: the gate is not run, not the mean of two
+    gates = {g["label"]: g for g in resolution.study_gates(results)}
+    assert gates[wall]["passed"] is None
     path = resolution.write_study(results, list(gates.values()), tmp_path / "r.md", "cmd")
     text = path.read_text()
     assert "| 4 |" in text and "not run" in text and "FAIL" in text
+
+
+def test_the_walls_seed_sets_its_packing_and_its_default_leaves_the_overrides_as_they_were(tmp_path):
+    default, _ = cases.build_overrides("passive_wall", cases.parse_params("passive_wall", []), "4", work_dir=tmp_path)
+    seeded, _ = cases.build_overrides("passive_wall", cases.parse_params("passive_wall", ["seed=2"]), "4",
+                                      work_dir=tmp_path)
+    assert not any(x.startswith("sim.seed=") for x in default) and "sim.seed=2" in seeded
+    assert sorted(set(seeded) - set(default)) == ["sim.seed=2"]
+    with pytest.raises(UserError, match="seed"):
+        cases.parse_params("passive_wall", ["seed=1.5"])
 
 
 def test_a_preset_gives_the_blade_and_wall_its_strength_unless_given():

@@ -87,7 +87,9 @@ PARAMS: dict[str, dict[str, Param]] = {
         "adhesion": Param(0.0, "Pa", lambda v: v >= 0, ">= 0"),
         "speed": Param(0.1, "m/s"), "preset": PRESET, "rolling_resistance": ROLLING},
     "passive_wall": {"height": Param(0.3, "m"), "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)),
-                     "density": Param(1700.0, "kg/m3"), "preset": PRESET, "rolling_resistance": ROLLING},
+                     "density": Param(1700.0, "kg/m3"), "preset": PRESET, "rolling_resistance": ROLLING,
+                     "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, ">= 0, whole (sim.seed: "
+                                   "the bed's packing)")},
     "column_collapse": {"aspect_ratio": Param(1.0, "", lambda v: 0.1 <= v <= 8, "between 0.1 and 8"),
                         "length": Param(0.4, "m"), "preset": PRESET, "rolling_resistance": ROLLING,
                         "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, ">= 0, whole (sim.seed: "
@@ -341,6 +343,8 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
                 "tools": [{"name": "wall", "box": [t, 2 * half_y + 4 * R, wall_h], "start": centre,
                            "velocity": [WALL_SPEED, 0.0, 0.0]}],
                 "sim.duration": (travel + RELEASE_GAP * R) / WALL_SPEED}
+        if p["seed"]:  # the scene's own seed (0) otherwise: kept runs stay the same runs
+            soil["sim.seed"] = int(p["seed"])
         geo = dict(radius=R, width=2 * half_y, gap=RELEASE_GAP * R)
     elif case == "column_collapse":
         L0, a = p["length"], p["aspect_ratio"]

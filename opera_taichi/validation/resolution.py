@@ -7,7 +7,8 @@ issue "accurate at the speed people use it" asks for:
 - the plane-strain blade (a90 delta0, d 0.3 m) at 3, 4, 6, 8 and 12 grains across the cut (20: the gate run of
   `validate-physics all`, taken from its folder when it is there): the convergence table and plot;
 - the gates at operating resolution: a90 and a60 delta20 within 25% of the FEE at 4 grains across, 15% at 8; draft
-  ~ d^2 within 10% at 4; the passive wall within 20% of Rankine at 4 grains across H;
+  ~ d^2 within 10% at 4; the passive wall within 20% of Rankine at 4 grains across H (the mean of WALL_SEEDS
+  packings: one packing's peak spreads by +-20% at 4 across);
 - the critical height of a vertical cut, bisected, within 25% of Culmann's for dirt and kanto_loam at the coarse
   and default resolutions.
 
@@ -27,6 +28,9 @@ from .report import SAND
 
 CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
 GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gate run: 20 across
+# the wall at 4 grains across H read 1.17, 0.77 and 0.99 x Rankine on seeds 0, 1 and 2 (2026-11-26): its gate takes
+# the mean of three packings, as the run-out slope does
+WALL_SEEDS = (0, 1, 2)
 
 
 def study_set() -> list[tuple[str, str, dict, str]]:
@@ -35,8 +39,9 @@ def study_set() -> list[tuple[str, str, dict, str]]:
     a60 = {**SAND, "depth": 0.3, "rake_deg": 60.0, "delta_deg": 20.0}
     runs = [(f"blade_a90_d0.3_n{n}", "blade_cut", a90, str(n)) for n in CONVERGENCE_ACROSS]
     runs += [(f"blade_a60_delta20_d0.3_n{n}", "blade_cut", a60, str(n)) for n in (4, 8)]
-    runs += [("blade_a90_d0.2_n4", "blade_cut", {**a90, "depth": 0.2}, "4"),
-             ("passive_wall_H0.3_n4", "passive_wall", {**SAND, "height": 0.3}, "4")]
+    runs += [("blade_a90_d0.2_n4", "blade_cut", {**a90, "depth": 0.2}, "4")]
+    runs += [(f"passive_wall_H0.3_n4_seed{s}", "passive_wall", {**SAND, "height": 0.3, "seed": s}, "4")
+             for s in WALL_SEEDS]
     runs += [(f"critical_height_{preset}_{res}", "critical_height", {"preset": preset}, res)
              for preset in ("dirt", "kanto_loam") for res in ("coarse", "default")]
     return runs
@@ -90,8 +95,9 @@ def study_gates(results: dict[str, dict]) -> list[dict]:
     gate("blade draft ~ d^2 (d 0.3 vs 0.2), 4 grains across d", ["blade_a90_d0.3_n4", "blade_a90_d0.2_n4"],
          lambda: results["blade_a90_d0.3_n4"]["measured"] / results["blade_a90_d0.2_n4"]["measured"],
          (0.3 / 0.2) ** 2, 0.10, "within 10%")
-    gate("passive wall H0.3, 4 grains across H: thrust / Rankine", ["passive_wall_H0.3_n4"],
-         lambda: _ratio(results["passive_wall_H0.3_n4"]), 1.0, 0.20, "within 20%")
+    walls = [f"passive_wall_H0.3_n4_seed{s}" for s in WALL_SEEDS]
+    gate(f"passive wall H0.3, 4 grains across H: thrust / Rankine, mean of {len(walls)} packings", walls,
+         lambda: sum(_ratio(results[k]) for k in walls) / len(walls), 1.0, 0.20, "within 20%")
     for preset in ("dirt", "kanto_loam"):
         for res in ("coarse", "default"):
             key = f"critical_height_{preset}_{res}"
@@ -137,6 +143,13 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
             continue
         lines.append(f"| {g['label']} ({g['gate']}) | {g['measured']:.3f} | {g['reference']:.3f} | "
                      f"{g['relative_error']:+.1%} | {'pass' if g['passed'] else 'FAIL'} |")
+    walls = [(k, m) for k, m in results.items() if k.startswith("passive_wall")]
+    if walls:
+        lines += ["", "Passive wall at 4 grains across H, peak thrust up to 0.2 H over Rankine's 2,769 N/m, by packing "
+                      "(the bed poured with another seed):", "", "| seed | particles | thrust N/m | / Rankine |",
+                  "|---|---|---|---|"]
+        lines += [f"| {m['parameters'].get('seed', 0):g} | {m['particles']:,} | {m['measured']:.0f} | "
+                  f"{_ratio(m):.3f} |" for k, m in walls]
     crit = [(k, m) for k, m in results.items() if k.startswith("critical_height")]
     if crit:
         lines += ["", "Critical heights (bisected between a cut that stands 5 s and one that falls; the bracket is "
