@@ -67,20 +67,12 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
     built-in machine of the same robot name, then falls back to the URDF's own limits (with a warning).
     `actuator_overrides` = {joint: {max_speed/max_torque/gain: value}} replaces single values."""
     warnings: list[str] = []
-    urdf_path, config = _resolve_urdf(urdf, config)
-    robot = _parse_urdf(urdf_path)
-    config_path = _resolve_config(config, urdf_path, robot.name, warnings)
-    cfg = _read_config(config_path) if config_path else {}
-    where = str(config_path) if config_path else "machine config"
-
+    urdf_path, robot, config_path, cfg, where, actuators = _read_actuators(urdf, config, actuator_overrides,
+                                                                           warnings)
     links = {link.name: link for link in robot.links}
     joints = {joint.name: joint for joint in robot.joints}
     children = _children(robot)
     root = _root_link(robot, urdf_path)
-
-    actuated = _actuated_joints(cfg, where, joints, children, links, urdf_path)
-    actuators = _actuators(cfg, where, actuated, joints, urdf_path, warnings)
-    _apply_overrides(actuators, actuator_overrides)
     tip_link, soil_links = _tip_and_soil_links(cfg, where, links, children, root, warnings,
                                                from_config=bool(config_path))
     tracks = _tracks(cfg, where)
@@ -113,7 +105,7 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
     limits = {name: _limits(joint) for name, joint in joints.items() if joint.type in MOVABLE}
     return MachineDescription(
         name=str(cfg.get("name") or robot.name), urdf_path=urdf_path, bullet_urdf_path=bullet_path,
-        actuated_joints=actuated, actuators=actuators, joint_limits=limits, tip_link=tip_link,
+        actuated_joints=list(actuators), actuators=actuators, joint_limits=limits, tip_link=tip_link,
         soil_links=soil_links, collision_meshes=collision_meshes, tracks=tracks, warnings=warnings,
         struck_volume=_struck_volume(cfg, where, soil_links),
         command_latency=_latency(cfg.get("command_latency", 0.0), f"{where}: command_latency"))
@@ -138,7 +130,15 @@ def joint_specs(urdf: str | Path, config: str | Path | None = None,
                 actuator_overrides: dict[str, dict] | None = None) -> dict[str, JointSpec]:
     """{joint: JointSpec} of the machine's movable joints, read as load_machine reads them (same files, same
     errors), without its meshes or the cleaned URDF: cheap enough for a study that only reads a run's angles."""
-    warnings: list[str] = []
+    _, robot, _, _, _, actuators = _read_actuators(urdf, config, actuator_overrides, [])
+    return {joint.name: JointSpec(joint.type, *_limits(joint),
+                                  actuators[joint.name].max_speed if joint.name in actuators else None)
+            for joint in robot.joints if joint.type in MOVABLE}
+
+
+def _read_actuators(urdf, config, actuator_overrides, warnings: list[str]):
+    """(urdf_path, robot, config_path, cfg, where, actuators): the URDF and machine.yaml resolved and read, and the
+    actuated joints' limits with the overrides applied (what load_machine and joint_specs both start from)."""
     urdf_path, config = _resolve_urdf(urdf, config)
     robot = _parse_urdf(urdf_path)
     config_path = _resolve_config(config, urdf_path, robot.name, warnings)
@@ -149,9 +149,7 @@ def joint_specs(urdf: str | Path, config: str | Path | None = None,
     actuated = _actuated_joints(cfg, where, joints, _children(robot), links, urdf_path)
     actuators = _actuators(cfg, where, actuated, joints, urdf_path, warnings)
     _apply_overrides(actuators, actuator_overrides)
-    return {name: JointSpec(joint.type, *_limits(joint),
-                            actuators[name].max_speed if name in actuators else None)
-            for name, joint in joints.items() if joint.type in MOVABLE}
+    return urdf_path, robot, config_path, cfg, where, actuators
 
 
 def _latency(value, where: str) -> float:
