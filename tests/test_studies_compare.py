@@ -573,6 +573,42 @@ def test_a_swing_over_several_turns_in_radians_compares_and_in_degrees_is_refuse
     assert other["joints"]["swing_joint"]["rmse_rad"] < 1e-4
 
 
+def test_a_swing_wrapped_to_pi_parked_on_the_wrap_compares_and_a_slow_swing_in_degrees_is_refused(tmp_path,
+                                                                                                      capsys):
+    """A swing that dumps behind the machine parks at 180 deg, where a log wrapped to +-pi flips between +pi and -pi
+    with its sensor's noise every sample (no isolated wrap: it read 13 rad/s, 'a log in degrees?'); a wrap resampled
+    over two samples (a bag's missing message) is a wrap too. A swing in degrees too slow for the rate check (0.05
+    rad/s) sweeps 57 x the run's angle over the run's span."""
+    t = np.arange(0.0, 12.0, 0.01)
+    swing = np.minimum(0.5 * t, math.pi)                  # to 180 deg in 6.3 s, then parked there
+    run = make_run(tmp_path / "run", joints=(t, {"swing_joint": swing}))
+    noisy = swing + np.random.default_rng(0).normal(0.0, 0.002, t.size)
+    wrapped = np.angle(np.exp(1j * noisy))
+    assert np.sum(np.abs(np.diff(wrapped)) > math.pi) > 100       # flips at nearly every sample once parked
+    np.savetxt(tmp_path / "parked.csv", np.column_stack([t, wrapped]), delimiter=",", fmt="%.6f",
+               header="t,swing_joint", comments="")
+    res = cmp.compare(run, joints=tmp_path / "parked.csv", out=tmp_path / "parked", figures=False)
+    assert res["joints"]["swing_joint"]["rmse_rad"] < 0.01
+    # a swing through the wrap and on (to 270 deg), the wrap's sample dropped and resampled in between
+    through = np.minimum(0.5 * t, 1.5 * math.pi)
+    run2 = make_run(tmp_path / "run2", joints=(t, {"swing_joint": through}))
+    w = np.angle(np.exp(1j * through))
+    k = int(np.argmax(np.abs(np.diff(w)) > math.pi)) + 1
+    w[k] = 0.7 * w[k - 1] + 0.3 * w[k + 1]                     # the wrap spread over two samples
+    np.savetxt(tmp_path / "through.csv", np.column_stack([t, w]), delimiter=",", fmt="%.6f",
+               header="t,swing_joint", comments="")
+    res = cmp.compare(run2, joints=tmp_path / "through.csv", out=tmp_path / "through", figures=False)
+    assert res["joints"]["swing_joint"]["rmse_rad"] < 0.5      # one sample off by up to pi, not 2 pi from there on
+    # a slow swing (0.05 rad/s for 12 s) logged in degrees under its radian name
+    slow = 0.05 * t
+    run3 = make_run(tmp_path / "run3", joints=(t, {"swing_joint": slow}))
+    np.savetxt(tmp_path / "slow.csv", np.column_stack([t, np.degrees(slow)]), delimiter=",", fmt="%.6f",
+               header="t,swing_joint", comments="")
+    code, err = _cli([run3, "--joints", tmp_path / "slow.csv", "--out", tmp_path / "c"], capsys)
+    assert code == 2 and "\n" not in err and "slow.csv: swing_joint sweeps 34.3" in err
+    assert "name its column swing_joint_deg" in err
+
+
 def test_a_bounded_joint_in_degrees_is_refused_by_its_rate_when_its_range_cannot_tell(tmp_path, capsys):
     """A boom logged in degrees that moves within +-5 deg (at up to 10 deg/s) stays within a turn (5 'rad'), which
     the range check lets through; its rate, 57 x the boom's, does not."""

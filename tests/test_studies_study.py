@@ -79,6 +79,19 @@ def test_an_integer_key_is_sampled_as_integers_within_its_bounds(tmp_path):
 
     assert [(v, type(v)) for v in _parameter("sim.seed", {"range": [0, 4], "num": 3}, "s").values] == \
         [(0, int), (2, int), (4, int)]
+    # ... and a list of whole numbers written as floats (YAML's 1.0), as its bounds are
+    for spec in ([1.0, 2], {"values": [0, 2.0]}):
+        assert [type(v) for v in _parameter("sim.seed", spec, "s").values] == [int, int]
+
+
+def test_random_draws_that_repeat_an_integer_point_run_it_once(tmp_path):
+    """Six random draws of a seed in 0..1 are at most two points: each runs once (six tasks were four identical,
+    deterministic simulations), and the study says how many draws repeated one."""
+    path = tmp_path / "s.yaml"
+    path.write_text(BASE + "parameters: {sim.seed: {low: 0, high: 1}}\nsampling: random\nsamples: 6\n"
+                           "metrics: [manifest.particles]\n")
+    study = load_study(path, tmp_path / "out")
+    assert sorted(p["sim.seed"] for p in study.points) == [0, 1] and study.repeats == 4
 
 
 @pytest.mark.parametrize("body, words", [

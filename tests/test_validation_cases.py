@@ -414,10 +414,11 @@ def test_resolution_study_gates_follow_the_issue(tmp_path):
     wall = "passive wall H0.3, 4 grains across H: thrust / Rankine, mean of 3 packings"
     assert gates[wall]["passed"] is None
     # the wall gate takes the mean of its three packings: 1.25, 0.75 and 1.0 x pass (each alone would not say so)
-    results.update({f"passive_wall_H0.3_n4_seed{s}": run(r * 2769, 2769) for s, r in enumerate((1.25, 0.75, 1.0))})
+    results.update({f"passive_wall_H0.3_n4_seed{s}": {**run(r * 2769, 2769), "parameters": {"seed": float(s)}}
+                    for s, r in enumerate((1.25, 0.75, 1.0))})
     gates = {g["label"]: g for g in resolution.study_gates(results)}
     assert gates[wall]["passed"] is True and gates[wall]["measured"] == pytest.approx(1.0)
-    results["passive_wall_H0.3_n4_seed2"] = run(0.2 * 2769, 2769)   # mean 0.73 x
+    results["passive_wall_H0.3_n4_seed2"] = {**run(0.2 * 2769, 2769), "parameters": {"seed": 2.0}}   # mean 0.73 x
     assert {g["label"]: g for g in resolution.study_gates(results)}[wall]["passed"] is False
     del results["passive_wall_H0.3_n4_seed1"]   # a packing not run: the gate is not run, not the mean of two
     gates = {g["label"]: g for g in resolution.study_gates(results)}
@@ -425,6 +426,7 @@ def test_resolution_study_gates_follow_the_issue(tmp_path):
     path = resolution.write_study(results, list(gates.values()), tmp_path / "r.md", "cmd")
     text = path.read_text()
     assert "| 4 |" in text and "not run" in text and "FAIL" in text
+    assert "| 0 | 1,000 | 3461 | 1.250 |" in text and "| 2 | 1,000 | 554 | 0.200 |" in text  # the wall by packing
 
 
 def test_the_walls_seed_sets_its_packing_and_its_default_leaves_the_overrides_as_they_were(tmp_path):

@@ -19,11 +19,13 @@ Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial
 Joints (a log with `t` and joints in rad or `_deg`, a ROS bag's sensor_msgs/JointState, or the other run's
 joints.csv), on their common time span resampled at `JOINT_DT`:
 - a log in degrees under radian names is refused: a joint with limits (boom, arm, bucket) that reaches beyond a full
-  turn and far beyond the run; any revolute joint that moves faster than RATE_MARGIN x its actuator's limit (the run's
-  machine description, read from the files its manifest names). A joint that turns without limit (a swing, continuous
-  in the URDF) is judged by its rate alone: unwrapped over several turns, its angle has no bound; a run against
-  another run is not checked (its joints.csv is in radians); a log of such a joint is unwrapped (a wrap to +-pi is
-  a one-sample step of a turn) and put on the run's turn at the start of the common span;
+  turn and far beyond the run; any rotating joint that moves faster than RATE_MARGIN x its actuator's limit (the run's
+  machine description, read from the files its manifest names; a joint with a speed limit, so not a prismatic one). A
+  joint that turns without limit (a swing, continuous in the URDF) has no bound: unwrapped over several turns, it is
+  judged by its rate and by what it sweeps over the run's time span (SWEEP_FACTOR x the run's); a run against
+  another run is not checked (its joints.csv is in radians); a log of such a joint is unwrapped (unwrap_swing) and
+  put on the run's turn at the start of the common span. A run whose machine cannot be read gets the range check
+  for every joint, with a warning;
 - rmse_rad: RMS of run minus reference; lag_s: the shift that best aligns the two (cross-correlation of the
   mean-removed angles, positive = the run is late); rate_ratio: the 90th percentile of the run's |angular rate| over
   the reference's (0.5 = the run moves at half the real rate).
@@ -55,6 +57,8 @@ RATE_MARGIN = 3.0          # a joint a log shows moving faster than this many ti
 MOVING_SHARE = 0.5         # ...over the samples faster than this share of the limit: a still joint's sensor noise of
                            # 0.2 deg, read as rad, moves it at ~0.2 rad/s (a floor of 0.24 rad/s for the swing let a
                            # log in degrees that stood still for most of it through)
+SWEEP_FACTOR = 20.0        # a swing's log sweeping more than this many times the run's angle over the run's span
+                           # (and more than a turn) is in degrees (57 x); the same motion sweeps about 1 x
 MIN_MOVING_S = 1.0         # s: a joint that moves for less than this in the log gives no evidence of its units
 CLOCK_TIME_S = 1e6         # s: a CSV log whose t starts later than this (11.6 days) holds clock time (epoch seconds)
 FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
@@ -425,6 +429,17 @@ def machine_joints(run_dir: Path) -> tuple[dict | None, str | None]:
     return out, None
 
 
+def unwrap_swing(q: np.ndarray) -> np.ndarray:
+    """A swing's log unwrapped. Within one turn of values (a log wrapped to +-pi, whatever it does at the wrap:
+    parked on it with noise, or a wrap resampled over two samples) numpy's unwrap; a log in degrees there moves less
+    than 6.3 deg, never a step of half a turn. A log spanning more than a turn is unwrapped already or in degrees:
+    only its isolated steps of about a turn are wraps (_unwrap_isolated)."""
+    q = np.asarray(q, float)
+    if q.size and float(np.ptp(q)) <= 2 * math.pi + 1e-6:
+        return np.unwrap(q)
+    return _unwrap_isolated(q)
+
+
 def _unwrap_isolated(q: np.ndarray) -> np.ndarray:
     """q with its isolated steps of about a turn taken out: a swing logged wrapped to +-pi steps 2 pi in one sample
     between small steps (2 pi in 0.3 s reads 21 rad/s). A log in degrees stepping 6 deg a sample steps about as much
@@ -451,11 +466,12 @@ def moving_rate(t: np.ndarray, q: np.ndarray, floor: float) -> tuple[float, floa
     return (float(np.median(fast)) if fast.size else 0.0), fast.size * dt
 
 
-def check_units(j: str, t_ref, q_ref, q_run, spec, label: str) -> None:
+def check_units(j: str, t_ref, q_ref, t_run, q_run, spec, label: str) -> None:
     """UserError when the log's joint j reads as degrees under a radian name: a joint with limits (or of unknown
     kind) beyond a full turn and far beyond the run's angles; a revolute joint of known speed limit moving faster
-    than RATE_MARGIN x that limit. A joint that turns without limit (a swing) is judged by its rate alone: unwrapped
-    over several turns, 7 rad is a turn and a bit, not 7 degrees."""
+    than RATE_MARGIN x that limit. A joint that turns without limit (a swing) has no bound: unwrapped over several
+    turns, 7 rad is a turn and a bit, not 7 degrees; over the run's time span it sweeps what the run does, where in
+    degrees it sweeps 57 x (beyond a turn), however slowly."""
     turns = spec is not None and spec.turns
     if not turns:
         # a log in degrees under radian names reads about 57 x the run's angles, beyond a full turn
@@ -463,13 +479,19 @@ def check_units(j: str, t_ref, q_ref, q_run, spec, label: str) -> None:
         if big > max(2 * math.pi, 3 * run_big + 1.0):
             raise UserError(f"--joints: {label}: {j} reaches {big:.4g} rad (the run at most {run_big:.3g} rad): "
                             f"a log in degrees? name its column {j}_deg")
-    if spec is None or spec.type == "prismatic" or not spec.max_speed:
-        return
-    rate, moving_s = moving_rate(t_ref, _unwrap_isolated(q_ref) if turns else q_ref, MOVING_SHARE * spec.max_speed)
-    if moving_s >= MIN_MOVING_S and rate > RATE_MARGIN * spec.max_speed:
-        raise UserError(f"--joints: {label}: {j} moves at {rate:.4g} rad/s (median over the {moving_s:.3g} s it "
-                        f"moves), {rate / spec.max_speed:.0f} x the machine's limit of {spec.max_speed:.3g} rad/s: a "
-                        f"log in degrees? name its column {j}_deg (or is its t not in seconds?)")
+    if spec is not None and spec.type != "prismatic" and spec.max_speed:
+        rate, moving_s = moving_rate(t_ref, unwrap_swing(q_ref) if turns else q_ref, MOVING_SHARE * spec.max_speed)
+        if moving_s >= MIN_MOVING_S and rate > RATE_MARGIN * spec.max_speed:
+            raise UserError(f"--joints: {label}: {j} moves at {rate:.4g} rad/s (median over the {moving_s:.3g} s it "
+                            f"moves), {rate / spec.max_speed:.0f} x the machine's limit of {spec.max_speed:.3g} "
+                            f"rad/s: a log in degrees? name its column {j}_deg (or is its t not in seconds?)")
+    span = (t_ref >= t_run[0]) & (t_ref <= t_run[-1])
+    if turns and span.sum() >= 2:  # too slow for the rate check, a swing in degrees still sweeps 57 x the run's
+        swept, run_swept = float(np.ptp(unwrap_swing(q_ref[span]))), float(np.ptp(q_run))
+        if swept > max(2 * math.pi, SWEEP_FACTOR * run_swept + 1.0):
+            raise UserError(f"--joints: {label}: {j} sweeps {swept:.4g} rad over the run's {t_run[0]:.4g}-"
+                            f"{t_run[-1]:.4g} s (the run {run_swept:.3g} rad): a log in degrees? name its column "
+                            f"{j}_deg")
 
 
 def _smooth(v: np.ndarray, n: int) -> np.ndarray:
@@ -514,7 +536,7 @@ def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
         raise UserError(f"--joints: {ref_label} names no joint of the run (run: {', '.join(run)}; log: "
                         f"{', '.join(ref)})")
     for j in joints if check else ():
-        check_units(j, t_ref, ref[j], run[j], (specs or {}).get(j), ref_label)
+        check_units(j, t_ref, ref[j], t_run, run[j], (specs or {}).get(j), ref_label)
     t0, t1 = max(t_run[0], t_ref[0]), min(t_run[-1], t_ref[-1])
     if not t1 - t0 > 2 * JOINT_DT:
         raise UserError(f"--joints: {ref_label} spans t {t_ref[0]:.6g}..{t_ref[-1]:.6g} s, the run "
@@ -535,7 +557,7 @@ def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
         spec = (specs or {}).get(j)
         if spec is not None and spec.turns:
             # a swing logged wrapped to +-pi, or from another zero turn: unwrapped and put on the run's turn
-            b = np.interp(t, t_ref, _unwrap_isolated(ref[j]))
+            b = np.interp(t, t_ref, unwrap_swing(ref[j]))
             b += 2 * math.pi * round(float(a[0] - b[0]) / (2 * math.pi))
         else:
             b = np.interp(t, t_ref, ref[j])

@@ -17,8 +17,9 @@ A study file (paths relative to it; every key checked, errors one line naming th
                 against: null}         # what compare.* metrics compare against
     out: studies/blade_depth           # the study folder (relative to the current directory); --out overrides
 
-A key the scene types as an integer (sim.seed) is sampled as integers, low..high inclusive (lhs: each integer an
-equal share of the strata); its low, high and range steps must be whole numbers.
+A key the scene types as an integer (sim.seed) is sampled as integers, low..high inclusive (each integer an equal
+share of the draws, or of lhs's strata; with log: true, shares that shrink as log(1 + 1/k)); its values, low, high
+and range steps must be whole numbers. Draws that repeat a point run it once (the study says how many did).
 
 The study folder holds runs/<point>/ (a run folder each, with point.json: the point's row), study.csv,
 study.parquet and study.png (each metric against each parameter). When the study runs again, a point whose
@@ -92,6 +93,7 @@ class Study:
     out: Path
     calibrate: dict | None = None
     points: list[dict] = field(default_factory=list)
+    repeats: int = 0    # random / lhs draws that repeated a point (integer keys only): each point runs once
 
     def metric_names(self) -> list[str]:
         return [m if isinstance(m, str) else m["name"] for m in self.metrics]
@@ -144,6 +146,8 @@ def _parameter(path: str, spec, label: str, bounds_only: bool = False) -> Parame
     if isinstance(spec, list):
         if not spec:
             raise UserError(f"{label}: {key}: an empty list")
+        if integer:  # 2.0 is 2 for an integer key, as in its bounds; what is no number is the scene check's
+            spec = [_whole(key, "values", [v], label)[0] if _is_num(v) else v for v in spec]
         return Parameter(path, values=list(spec))
     if not isinstance(spec, dict):
         raise UserError(f"{label}: {key}: expected a list of values, {{range: [a, b], num: n}} or {{low: a, high: b}}, "
@@ -336,12 +340,15 @@ def expand_points(study: Study, label: str) -> list[dict]:
         unit = qmc.LatinHypercube(d=len(ps), seed=study.seed).random(study.samples)
     else:
         unit = np.random.default_rng(study.seed).random((study.samples, len(ps)))
-    return [{p.path: scale(p, u[k]) for k, p in enumerate(ps)} for u in unit]
+    points = [{p.path: scale(p, u[k]) for k, p in enumerate(ps)} for u in unit]
+    unique = list({json.dumps(pt, sort_keys=True): pt for pt in points}.values())
+    study.repeats = len(points) - len(unique)
+    return unique
 
 
 def scale(p: Parameter, u: float) -> float | int:
     """The value at u in [0, 1) of the parameter's range; an integer key's over low..high inclusive, each integer an
-    equal share of u (so lhs strata stay strata)."""
+    equal share of u (so lhs strata stay strata; log: the share of [k, k + 1) in log space)."""
     if p.integer:
         lo, hi = p.low, p.high + 1  # floor() of [low, high + 1) is low..high
         x = math.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))) if p.log else lo + u * (hi - lo)
@@ -743,6 +750,9 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
             changed += any(finished_row(f, task["overrides"], _stored_scene(f)) is not None for f in folders)
     say = (lambda *a: None) if quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     say(f"study {study.name}: {len(tasks)} points, {len(finished)} finished before, {len(todo)} to run -> {study.out}")
+    if study.repeats:
+        say(f"  {study.repeats} of the {study.samples} {study.sampling} samples repeated a point (integer keys take "
+            f"few values): each point runs once")
     if changed:
         say(f"  {changed} of them finished before with another content of the scene or a file it names (or "
             f"recorded without it by an older version): simulated again")

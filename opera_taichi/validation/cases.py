@@ -71,6 +71,8 @@ def _angle(lo: float, hi: float) -> tuple[Callable[[float], bool], str]:
 PRESET = Param("sand", "", None, "a soil preset")
 # the soil's rolling resistance instead of the bulk-to-micro mapping's (docs/validation.md, calibration step 2)
 ROLLING = Param(None, "", lambda v: 0.0 <= v <= 1.0, "between 0 and 1 (default: the mapping's for the preset)")
+SEED = Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, "a whole number 0 to 2^32 - 1 (sim.seed: the "
+             "bed's packing)")
 
 PARAMS: dict[str, dict[str, Param]] = {
     "blade_cut": {
@@ -88,12 +90,10 @@ PARAMS: dict[str, dict[str, Param]] = {
         "speed": Param(0.1, "m/s"), "preset": PRESET, "rolling_resistance": ROLLING},
     "passive_wall": {"height": Param(0.3, "m"), "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)),
                      "density": Param(1700.0, "kg/m3"), "preset": PRESET, "rolling_resistance": ROLLING,
-                     "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, ">= 0, whole (sim.seed: "
-                                   "the bed's packing)")},
+                     "seed": SEED},
     "column_collapse": {"aspect_ratio": Param(1.0, "", lambda v: 0.1 <= v <= 8, "between 0.1 and 8"),
                         "length": Param(0.4, "m"), "preset": PRESET, "rolling_resistance": ROLLING,
-                        "seed": Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, ">= 0, whole (sim.seed: "
-                                      "the column's packing)")},
+                        "seed": SEED},
     "repose": {"preset": PRESET, "rolling_resistance": ROLLING},
     "vertical_cut": {"height": Param(None, "m (default: 0.6 x the Culmann height of the preset)"),
                      "preset": Param("dirt", "", None, "a soil preset")},
