@@ -520,6 +520,12 @@ def test_a_field_dig_wider_than_the_runs_is_not_taken_for_a_misplaced_scan(tmp_p
 SWING_TURN = math.radians(400.0)  # one dig-and-dump cycle swings 400 deg one way (6.98 rad)
 
 
+def joint_log(path, t, joint, q):
+    """A field joint log: a `t` column and one joint's column (written as `joint`, rad unless named `_deg`)."""
+    np.savetxt(path, np.column_stack([t, q]), delimiter=",", fmt="%.6f", header=f"t,{joint}", comments="")
+    return path
+
+
 def swing_cycles(t):
     """The upper structure, unwrapped: each 12 s cycle swings SWING_TURN in 8 s (cosine profile, 1.37 rad/s at
     most: a machine a little quicker than the zx120's 1.2 rad/s limit), then stands 4 s to dig."""
@@ -585,8 +591,7 @@ def test_a_swing_wrapped_to_pi_parked_on_the_wrap_compares_and_a_slow_swing_in_d
     noisy = swing + np.random.default_rng(0).normal(0.0, 0.002, t.size)
     wrapped = np.angle(np.exp(1j * noisy))
     assert np.sum(np.abs(np.diff(wrapped)) > math.pi) > 100       # flips at nearly every sample once parked
-    np.savetxt(tmp_path / "parked.csv", np.column_stack([t, wrapped]), delimiter=",", fmt="%.6f",
-               header="t,swing_joint", comments="")
+    joint_log(tmp_path / "parked.csv", t, "swing_joint", wrapped)
     res = cmp.compare(run, joints=tmp_path / "parked.csv", out=tmp_path / "parked", figures=False)
     assert res["joints"]["swing_joint"]["rmse_rad"] < 0.01
     # a swing through the wrap and on (to 270 deg), the wrap's sample dropped and resampled in between
@@ -595,15 +600,13 @@ def test_a_swing_wrapped_to_pi_parked_on_the_wrap_compares_and_a_slow_swing_in_d
     w = np.angle(np.exp(1j * through))
     k = int(np.argmax(np.abs(np.diff(w)) > math.pi)) + 1
     w[k] = 0.7 * w[k - 1] + 0.3 * w[k + 1]                     # the wrap spread over two samples
-    np.savetxt(tmp_path / "through.csv", np.column_stack([t, w]), delimiter=",", fmt="%.6f",
-               header="t,swing_joint", comments="")
+    joint_log(tmp_path / "through.csv", t, "swing_joint", w)
     res = cmp.compare(run2, joints=tmp_path / "through.csv", out=tmp_path / "through", figures=False)
     assert res["joints"]["swing_joint"]["rmse_rad"] < 0.5      # one sample off by up to pi, not 2 pi from there on
     # a slow swing (0.05 rad/s for 12 s) logged in degrees under its radian name
     slow = 0.05 * t
     run3 = make_run(tmp_path / "run3", joints=(t, {"swing_joint": slow}))
-    np.savetxt(tmp_path / "slow.csv", np.column_stack([t, np.degrees(slow)]), delimiter=",", fmt="%.6f",
-               header="t,swing_joint", comments="")
+    joint_log(tmp_path / "slow.csv", t, "swing_joint", np.degrees(slow))
     code, err = _cli([run3, "--joints", tmp_path / "slow.csv", "--out", tmp_path / "c"], capsys)
     assert code == 2 and "\n" not in err and "slow.csv: swing_joint sweeps 34.3" in err
     assert "name its column swing_joint_deg" in err
@@ -615,8 +618,7 @@ def test_a_bounded_joint_in_degrees_is_refused_by_its_rate_when_its_range_cannot
     t = np.arange(0.0, 20.0, 0.01)
     boom = math.radians(5.0) * np.sin(2.0 * t)
     run = make_run(tmp_path / "run", joints=(t, {"boom_joint": boom}))
-    np.savetxt(tmp_path / "boom.csv", np.column_stack([t, np.degrees(boom)]), delimiter=",", fmt="%.6f",
-               header="t,boom_joint", comments="")
+    joint_log(tmp_path / "boom.csv", t, "boom_joint", np.degrees(boom))
     code, err = _cli([run, "--joints", tmp_path / "boom.csv", "--out", tmp_path / "c"], capsys)
     assert code == 2 and "\n" not in err and "boom.csv: boom_joint moves at" in err
     assert "machine's limit of 0.7 rad/s" in err
@@ -629,8 +631,7 @@ def test_a_run_whose_machine_cannot_be_read_falls_back_to_the_range_check_and_sa
     manifest["scene"]["machine"]["urdf"] = str(tmp_path / "moved" / "zx120.urdf")  # a run folder from elsewhere
     (run / "manifest.json").write_text(json.dumps(manifest))
     tl = np.arange(0.0, 60.0, 0.02)
-    np.savetxt(tmp_path / "rad.csv", np.column_stack([tl, swing_cycles(tl)]), delimiter=",", fmt="%.6f",
-               header="t,swing_joint", comments="")
+    joint_log(tmp_path / "rad.csv", tl, "swing_joint", swing_cycles(tl))
     code, err = _cli([run, "--joints", tmp_path / "rad.csv", "--out", tmp_path / "c"], capsys)
     assert code == 2 and "warning: RUN_DIR: the run's machine description cannot be read" in err
     assert "zx120.urdf does not exist" in err and "a log in degrees? name its column swing_joint_deg" in err
