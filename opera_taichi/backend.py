@@ -29,7 +29,9 @@ def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> s
             return _started
         raise UserError(f"--arch {arch}: Taichi already runs on {_started} in this process (one backend per "
                         f"process); use --arch {'cuda' if _started == 'cuda' else 'cpu'} or another process")
-    kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0)
+    # fast_math off: IEEE arithmetic, so a kernel's bits do not depend on how the compiler arranges it (with it on, the
+    # soil's serial and threaded variants of a substep parted by an ulp in a dig on an AVX-512 host; no slower)
+    kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0, fast_math=False)
     if default_fp is not None:
         kwargs["default_fp"] = default_fp
     # Taichi prints its "Starting on arch=..." line to stdout: a diagnostic, so to stderr (stdout stays the run's

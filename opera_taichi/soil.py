@@ -27,7 +27,7 @@ COHESION_EXPONENT = 0.92
 # Tool area per soil-tool contact, in R^2: the grains touching a flat face cover about 55% of it in projection (a
 # random monolayer), one contact per pi R^2 / 0.55. Converts the adhesion c_a (Pa) to a force per contact.
 TOOL_CONTACT_AREA = math.pi / 0.55
-STEP_FRACTION = 15.0      # dt_limit = t_c / 15
+STEP_FRACTION = 10.0      # dt_limit = t_c / 10
 ROLLING_DAMPING = 0.3     # EPSD viscous rolling damping ratio while the rolling spring is elastic
 TANGENTIAL_RATIO = 2.0 / 7.0
 WALL_STIFFNESS_RATIO = 2.0   # ground, walls and tools: k = 2 k_n, the same surface compliance as a sphere
@@ -254,7 +254,7 @@ def _discrete_restitution(c: float, omega_dt: float, phases: int = 8) -> float:
 def damping_for_step(restitution: float, omega_dt: float) -> float:
     """Damping factor c (gamma = c sqrt(m_eff k)) whose collision, integrated with step dt (omega_dt =
     dt sqrt(k/m_eff)), rebounds with exactly `restitution`. The continuous formula (damping_factor) lags by
-    half a step, which lowers e at t_c/15 for strong damping (~0.28 instead of 0.3 on average; a single
+    half a step, which lowers e for strong damping (~0.28 instead of 0.3 on average at t_c / 15; a single
     collision still varies by ~10% with the phase of impact at the step, less for larger e)."""
     if restitution >= 1.0:
         return 0.0
@@ -304,7 +304,7 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
       raises the normal force by F_a, so the interface's shear strength is sigma tan(delta) + F_a (1 + tan(delta))
       / A_c (A_c = TOOL_CONTACT_AREA R^2 of tool per contact): F_a = c_a A_c / (1 + tan(delta)) gives
       tau = c_a + sigma tan(delta), the earthmoving equation's interface.
-    - dt_limit = t_c / 15 for the lightest pair (both spheres at the smallest radius), with
+    - dt_limit = t_c / STEP_FRACTION (10) for the lightest pair (both spheres at the smallest radius), with
       t_c = pi / sqrt(k/m_eff - (gamma/2m_eff)^2).
     """
     radius = bulk.radius

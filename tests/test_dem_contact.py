@@ -4,7 +4,7 @@ import pytest
 
 from opera_taichi.backend import current_arch, init_taichi
 from opera_taichi.errors import DivergenceError
-from opera_taichi.soil import bulk_to_micro, resolve_soil
+from opera_taichi.soil import STEP_FRACTION, bulk_to_micro, resolve_soil
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -62,8 +62,9 @@ def test_stack_on_the_ground_carries_its_weight():
 
 @pytest.mark.parametrize("restitution", [0.3, 0.5, 0.8])
 def test_head_on_collision_restitution(restitution):
-    """Rebound speed ratio = e, averaged over where the impact falls within a step (one collision varies
-    by up to ~10% at e = 0.3 with dt = t_c / 15)."""
+    """Rebound speed ratio = e, averaged over where the impact falls within a step. One collision's ratio varies
+    with that phase, an error of first order in the step: from end to end 0.17 e at e = 0.3 with dt = t_c / 15, 0.25 e
+    with t_c / 10."""
     soil = make_soil(overrides={"restitution": restitution, "friction_angle_deg": 30}, gravity=(0, 0, 0))
     r = soil.micro.radius
     v = 0.5
@@ -77,7 +78,7 @@ def test_head_on_collision_restitution(restitution):
         assert np.abs(vel[:, 1:]).max() < 1e-12
         ratios.append(vel[1, 0] / v)
     assert np.mean(ratios) == pytest.approx(restitution, rel=0.03)
-    assert np.ptp(ratios) < 0.25 * restitution
+    assert np.ptp(ratios) < 3.75 / STEP_FRACTION * restitution  # 0.25 e at t_c / 15
 
 
 def test_ground_bounce_restitution():

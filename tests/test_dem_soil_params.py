@@ -5,8 +5,8 @@ import pytest
 
 from opera_taichi.backend import current_arch, init_taichi
 from opera_taichi.errors import UserError
-from opera_taichi.soil import (GRAVITY, PRESETS, SOLID_FRACTION, bulk_to_micro, check_dt, contact_duration,
-                               damping_factor, resolve_soil)
+from opera_taichi.soil import (GRAVITY, PRESETS, SOLID_FRACTION, STEP_FRACTION, bulk_to_micro, check_dt,
+                               contact_duration, damping_factor, resolve_soil)
 
 
 @pytest.fixture(scope="module")
@@ -86,9 +86,9 @@ def test_micro_mapping_follows_the_documented_rules():
     area = math.pi * bulk.radius ** 2 / 0.55
     assert sticky.adhesion_force * (1.0 + sticky.mu_tool) / area == pytest.approx(1000.0)
     assert sticky.adhesion_range == pytest.approx(micro.cohesion_range)
-    # the stability limit is t_c / 15 of the lightest pair
+    # the stability limit is t_c / STEP_FRACTION of the lightest pair
     m_pair = 0.5 * micro.particle_mass
-    assert micro.dt_limit == pytest.approx(contact_duration(micro.k_n, m_pair, micro.damping) / 15.0)
+    assert micro.dt_limit == pytest.approx(contact_duration(micro.k_n, m_pair, micro.damping) / STEP_FRACTION)
 
 
 def test_overlap_rule_stiffens_soft_soils_for_deep_beds():

@@ -109,7 +109,11 @@ def derived_gates(results: list[dict]) -> list[dict]:
 CALIBRATION = """## Calibration procedure
 
 The bulk-to-micro mapping is `opera_taichi.soil.bulk_to_micro`; what a user controls per soil is in
-`soil.overrides` (docs/scene_reference.md). The knobs, in the order to tune them:
+`soil.overrides` (docs/scene_reference.md). The figures below were measured with the solver of their day: up to
+solver version 17 (2026-11-26) the soil's substep was t_c / 15 of the lightest pair's contact and Taichi compiled
+with fast math; version 18 takes t_c / 10 (which, measured over three packings at 4 grains across, moved the blade
+by +1.4% and the wall within its packings' spread: docs/performance.md) and IEEE arithmetic. The tables above are
+from the version in the header. The knobs, in the order to tune them:
 
 1. **Bed state.** Beds are poured with the soil's own friction and rolling resistance (loose, as deposited)
    and the particle masses are then scaled so the settled bed has the given bulk `density` (`DemSoil.bed_packing`
@@ -354,6 +358,14 @@ def _verdict(passed) -> str:
     return "shown" if passed is None else "pass" if passed else "FAIL"
 
 
+def solver_label() -> str:
+    """The solver a report's runs come from (--resume reuses only runs of this version)."""
+    from ..dem_soil import SOLVER_VERSION
+    from ..soil import STEP_FRACTION
+
+    return f"solver version {SOLVER_VERSION} (soil substep t_c / {STEP_FRACTION:g})"
+
+
 def write_report(results: list[dict], report_path: Path, command: str, not_run: list[str] = ()) -> Path:
     """docs/validation.md (table + plots in <report stem>/) from the metrics of the gate runs; not_run: gates
     without a finished run (listed as such, so a partial report cannot pass for a whole one)."""
@@ -363,8 +375,8 @@ def write_report(results: list[dict], report_path: Path, command: str, not_run: 
     plots = _plots(results, plot_dir)
     resolutions = sorted({r["resolution"] for r in results})
     lines = ["# Physics validation", "",
-             f"Generated {datetime.now().isoformat(timespec='seconds')} at resolution {', '.join(resolutions)}. "
-             "Regenerate with:", "", "```", command, "```", "",
+             f"Generated {datetime.now().isoformat(timespec='seconds')} at resolution {', '.join(resolutions)}, "
+             f"{solver_label()}. Regenerate with:", "", "```", command, "```", "",
              "(`--resume` keeps the runs already finished in that folder with the same parameters, the same "
              "micro-parameters from the bulk-to-micro mapping and the same solver version, measures their metrics "
              "again with the current code, and runs only the others.)", "",

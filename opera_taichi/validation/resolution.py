@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from .cases import finished_metrics, run_case
-from .report import SAND
+from .report import SAND, solver_label
 
 CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
 GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gate run: 20 across
@@ -111,7 +111,8 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
     plot_dir = report_path.parent / report_path.stem
     plot_dir.mkdir(parents=True, exist_ok=True)
     lines = ["# The soil at operating resolution", "",
-             f"Generated {datetime.now().isoformat(timespec='seconds')}. Regenerate with:", "", "```", command,
+             f"Generated {datetime.now().isoformat(timespec='seconds')}, {solver_label()}. Regenerate with:", "",
+             "```", command,
              "```", "",
              "The gate set (docs/validation.md) is calibrated at 20 grains across the blade's cut; the main job digs "
              "at about 3 (8 cm grains, a 0.5 m cut). This study runs the plane-strain blade, the wall and the "
