@@ -35,7 +35,8 @@ from .tool_sdf import tool_sdf
 
 MORTON_TABLE_PER_PARTICLE = 16
 MORTON_TABLE_MAX = 1 << 21
-# 18: soil substep t_c / 10 (was 15); 17: a shifted bed keeps its masses and contacts; 16: a larger cell hash table, sleeping blocks skipped
+# 18: soil substep t_c / 10 (was 15), IEEE arithmetic; 17: a shifted bed keeps its masses and contacts; 16: a larger
+# cell hash table, sleeping blocks skipped
 SOLVER_VERSION = 18
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
