@@ -276,7 +276,8 @@ def cohesion_force(gap, prm: ti.template()):
 def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off: ti.template(),
                  nbr_j: ti.template(), nbr_h: ti.template(), rev_pos: ti.template(), pair_out: ti.template(),
                  own: ti.template(), surf_id: ti.template(), prm: ti.template(), dt: ti.f64,
-                 blk_list: ti.template(), block: ti.i32, n_frozen: ti.i32, stat: ti.template()):
+                 blk_list: ti.template(), blk_active: ti.template(), block: ti.i32, n_frozen: ti.i32,
+                 stat: ti.template()):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -325,6 +326,12 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                             if j < n_frozen:  # frozen: not integrated until the host repartitions
                                 stat[S_THAW] = 1.0
                                 stat[S_HALT] = 1.0
+                            else:  # its step() this substep takes the request, as if its block had been listed
+                                # (nested: Taichi's `and` evaluates both sides, in an order of its choosing)
+                                b_j = (j - n_frozen) // block
+                                if blk_active[b_j] == 0:
+                                    if ti.atomic_max(blk_active[b_j], 1) == 0:
+                                        blk_list[ti.atomic_add(blk_list[0], 1) + 1] = b_j
                         if asleep_i and v_j.dot(v_j) > wake_v2:
                             ti.atomic_or(surf_id[i, TOOL_BITS], WAKE_BIT)
             dx = x_i - kin[j, 0]
@@ -550,15 +557,12 @@ def _rotation_from_vector(phi):
 
 # ----------------------------------------------------------------------------------------------- integration
 @ti.func
-def _mark_hot(i, base, block, blk_hot: ti.template(), nbr_off: ti.template(), nbr_j: ti.template(),
-              rev_off: ti.template(), rev_holder: ti.template()):
-    """Particle i is awake for the next substep: its block and the blocks of all its partners take part in it.
-    Blocks start at `base` (the first particle after the frozen prefix, which is in none)."""
+def _mark_hot(i, base, block, blk_hot: ti.template(), rev_off: ti.template(), rev_holder: ti.template()):
+    """Particle i is awake for the next substep: its block and the blocks holding its other pairs take part in it.
+    The pairs i holds are evaluated in its own block, so its partners' blocks are not needed unless i asks one of
+    them to wake (pair_forces lists that block then). Blocks start at `base` (the first particle after the frozen
+    prefix, which is in none)."""
     blk_hot[(i - base) // block] = 1
-    for e in range(nbr_off[i], nbr_off[i + 1]):
-        j = nbr_j[e]
-        if j >= base:
-            blk_hot[(j - base) // block] = 1
     for q in range(rev_off[i], rev_off[i + 1]):
         blk_hot[(rev_holder[q] - base) // block] = 1
 
@@ -637,8 +641,8 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
                  blk_active: ti.template(), blk_box: ti.template(), blk_list: ti.template(), stat: ti.template(),
                  todo: ti.i32, n_frozen: ti.i32):
     """Which blocks of particles take part in this substep: hot ones (marked by the last step, or by
-    mark_awake_blocks after a rebuild: an awake particle in them or among their partners) and those whose bounding
-    box may meet a tool's SDF grid.
+    mark_awake_blocks after a rebuild: an awake particle in them or a pair they hold with one) and those whose
+    bounding box may meet a tool's SDF grid; pair_forces adds the block of a sleeper it asks to wake.
     The others are asleep with sleeping partners only and out of every tool's reach, so computing them would
     change nothing: a sleeping bed costs what its blocks cost to skip, whatever its size. skip = 0: all active.
     blk_list[0] = the number of active blocks, blk_list[1:] their indices (in no fixed order: each block's work
@@ -673,10 +677,9 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
 
 @ti.kernel
 def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, surf_id: I32_2, prm: F64_1,
-                      blk_hot: I32_1, blk_box: KIN, nbr_off: I32_1, nbr_j: I32_1, rev_off: I32_1, rev_holder: I32_1,
-                      tool_gap: F64_1):
+                      blk_hot: I32_1, blk_box: KIN, rev_off: I32_1, rev_holder: I32_1, tool_gap: F64_1):
     """After the particle order or the lists changed (a rebuild): each block's box anew, and hot the blocks that
-    hold an awake particle (or one asked to wake) or a partner of one, as step() would have marked them. The
+    hold an awake particle (or one asked to wake) or a pair with one, as step() would have marked them. The
     others are asleep with sleeping partners: computing them would change nothing, so a rebuild does not make the
     next substep walk the whole bed. Blocks cover the particles after the frozen prefix (n_frozen on)."""
     n_blocks = (n_act - n_frozen + block - 1) // block
@@ -694,7 +697,7 @@ def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, 
         tool_gap[i] = -HUGE  # (another particle may sit in this slot now)
         word = surf_id[i, TOOL_BITS]
         if sleep_steps <= 0 or (word >> CALM_SHIFT) < sleep_steps or (word & WAKE_BIT) != 0:
-            _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+            _mark_hot(i, n_frozen, block, blk_hot, rev_off, rev_holder)
 
 
 @ti.kernel
@@ -720,7 +723,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
     block: particles per reduction block (reduction_block(n_act)). Returns the largest squared displacement since
     the last neighbour build (HUGE when a particle left the domain, so the caller rebuilds and drops it from the
     lists). Blocks that mark_blocks left inactive are skipped (all asleep, no partner awake, no tool near: nothing
-    would change); each particle awake after its step marks its block and its partners' blocks hot, and the block's
+    would change); each particle awake after its step marks its block and the blocks holding its pairs hot, and the block's
     bounding box is kept for mark_blocks' tool test.
     """
     running = stat[S_RUN] != 0.0
@@ -780,7 +783,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     if woken:
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
                         tool_gap[i] = -HUGE  # (the sleeping particle's gap assumed it would not move)
-                        _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+                        _mark_hot(i, n_frozen, block, blk_hot, rev_off, rev_holder)
                     x_b = kin[i, 0]
                     box_lo = ti.min(box_lo, x_b)
                     box_hi = ti.max(box_hi, x_b)
@@ -949,7 +952,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                     tool_gap[i] = -HUGE
                             tool_bits = (tool_bits & TOOL_MASK) | (calm << CALM_SHIFT)
                             if calm < sleep_steps:
-                                _mark_hot(i, n_frozen, block, blk_hot, nbr_off, nbr_j, rev_off, rev_holder)
+                                _mark_hot(i, n_frozen, block, blk_hot, rev_off, rev_holder)
                         else:
                             blk_hot[blk] = 1
                     if tool_bits != bits_in:
@@ -1040,8 +1043,8 @@ def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f6
     integration (the loops run one after the other; a launch costs ~20 us of argument setup on the CPU even in a
     compute graph, more than an idle substep's work)."""
     _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo, n_frozen)
-    _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list, block,
-                 n_frozen, stat)
+    _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list,
+                 blk_active, block, n_frozen, stat)
     _step(n_act, kin, prop, flags, x_ref, own, rev_off, pair_out, surf_id, surf_h, tools, tool_acc, sdf, prm, stat,
           partial, dt, bulk_damping, block, blk_active, blk_list, blk_hot, blk_box, nbr_off, nbr_j, rev_holder,
           n_frozen, tool_gap, skip)

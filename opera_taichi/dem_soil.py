@@ -197,8 +197,8 @@ _FILL = ("lo", "n_frozen", "n_act", "kin", "prop", "cell", "starts", "order", "n
          "nbr_off_out", "nbr_j_out", "nbr_h_out", "x_ref", "prm", "mask", "live_mask", "kept", "order_inv")
 _REVERSE = ("lo", "n_frozen", "n_act", "nbr_off_out", "nbr_j_out", "rev_off", "rev_pos", "scratch", "rev_holder")
 _REV_HOLDER = ("lo", "n_act", "nbr_off_out", "rev_pos", "rev_holder", "scratch")
-_AWAKE = ("n_frozen", "n_act", "block", "kin", "surf_id", "prm", "blk_hot", "blk_box", "nbr_off_out", "nbr_j_out",
-          "rev_off", "rev_holder", "tool_gap")
+_AWAKE = ("n_frozen", "n_act", "block", "kin", "surf_id", "prm", "blk_hot", "blk_box", "rev_off", "rev_holder",
+          "tool_gap")
 
 
 def _rebuild_steps(which: str, parallel: bool = False) -> KernelSequence:
@@ -263,11 +263,7 @@ class DemSoil:
         self.keep_still_lists = True
         self.freeze_far = True  # False: no frozen prefix (same physics, other particle order and round-off)
         self.n_frozen = 0
-        self._partition = np.zeros((dem.MAX_TOOLS, 4))  # each tool's on flag and sphere centre at the partition
-        self._partition_time = -math.inf
-        self._slots_at_try = 0
-        self._clearance = np.full(dem.MAX_TOOLS, np.inf)  # each tool's clearance to the frozen soil at the partition
-        self._repartition_due = False
+        self._forget_partition()
         self._on_settle = on_settle
         self.r_max = micro.radius * (1.0 + micro.polydispersity)
         self.domain_min, self.domain_max = _check_domain(domain_min, domain_max)
@@ -308,7 +304,6 @@ class DemSoil:
         # the step loop's layout: blocks of particles for a CPU's few threads, one particle per thread on a GPU
         # (the same physics up to the order of the sums; the tests run it on the CPU too)
         self.per_particle = current_arch() in PER_PARTICLE_ARCHS
-        self._active_slots = 0
         self._tools_in = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))  # the host's tool rows, uploaded
         self._report = ti.ndarray(ti.f64, dem.REPORT_SIZE)  # written by end_chunk, read once per run of substeps
         # (zero-copy views of both on the CPU; None on a GPU, where they are copied)
@@ -437,6 +432,7 @@ class DemSoil:
             full[:len(value)] = value
             target.from_numpy(full)
         self.n_act, self._entries = n_act, e
+        self._active_slots = int(self._stat.to_numpy()[dem.S_ACTIVE])  # (the last run of substeps': layout, freezing)
         self._lists_built = self._lists_keepable = True  # (the lists of a build, with their reference positions)
         self.n_frozen = int(state["counters"][3]) if len(state["counters"]) > 3 else 0
         self._live_mask = int(state["counters"][4]) if len(state["counters"]) > 4 else self._mask
@@ -823,8 +819,7 @@ class DemSoil:
             dem.fill_rev_holder(self._rebuilt_from, self.n_act, self._nbr_off, self._rev_pos, self._rev_holder,
                                 self._scratch)
             dem.mark_awake_blocks(self.n_frozen, self.n_act, self._block, self._kin, self._surf_id, self._prm,
-                                  self._blk_hot, self._blk_box, self._nbr_off, self._nbr_j, self._rev_off,
-                                  self._rev_holder, self._tool_gap)
+                                  self._blk_hot, self._blk_box, self._rev_off, self._rev_holder, self._tool_gap)
         else:
             self._blk_hot.fill(1)
 
@@ -1086,7 +1081,17 @@ class DemSoil:
             target.from_numpy(full)
         self._flags.fill(1)
         self._stat.fill(0.0)
+        self._forget_partition()  # (a bed settled in this process digs as one loaded from the cache)
         self._rebuild()
+
+    def _forget_partition(self) -> None:
+        """The host's record of the substeps and the frozen partition, as in a new soil."""
+        self._partition = np.zeros((dem.MAX_TOOLS, 4))  # each tool's on flag and sphere centre at the partition
+        self._partition_time = -math.inf
+        self._slots_at_try = 0
+        self._clearance = np.full(dem.MAX_TOOLS, np.inf)  # each tool's clearance to the frozen soil at the partition
+        self._repartition_due = False
+        self._active_slots = 0  # particle slots the last run of substeps listed (_layout, _partition_stale)
 
     # ------------------------------------------------------------------------------------------- tools
     def add_tool(self, name: str, mesh, *, spacing: float | None = None) -> int:

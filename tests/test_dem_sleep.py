@@ -106,14 +106,41 @@ def test_a_blade_cuts_sleeping_soil_with_the_same_draft(monkeypatch):
     assert drafts[2] == pytest.approx(drafts[0], rel=0.05), drafts
 
 
-def _bed(sleep: bool):
+def _bed(sleep: bool, settle_time: float = 1.0):
     from opera_taichi.dem_soil import DemSoil
     from opera_taichi.soil import bulk_to_micro, resolve_soil
 
     init_taichi("cpu")
     micro = bulk_to_micro(resolve_soil("sand", {"radius": 0.02, "youngs_modulus": 2e6}), bed_depth=0.2)
     return DemSoil(micro, domain_min=(-0.3, -0.3, -0.25), domain_max=(0.3, 0.3, 0.6),
-                   beds=[((-0.2, -0.2, -0.2), (0.2, 0.2, 0.0))], seed=3, sleep=sleep)
+                   beds=[((-0.2, -0.2, -0.2), (0.2, 0.2, 0.0))], seed=3, sleep=sleep, settle_time=settle_time)
+
+
+def test_a_bed_settled_in_the_run_digs_as_one_loaded_from_the_cache(tmp_path, monkeypatch, freeze_any_bed):
+    """The run that settles a sleeping bed and a later run from its cache freeze the far soil at the same steps and
+    cut it the same, bit for bit. (The settling's own record of its partitions once went on into the first run,
+    which then froze nothing until the settling's time had passed again: other particle orders, other bits.)"""
+    import trimesh
+
+    from opera_taichi import dem_soil
+
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    monkeypatch.setattr(dem_soil, "FREEZE_MARGIN", 0.0)  # (the margin's floor, 4 grain reaches: 13 cm)
+    runs = []
+    for _ in range(2):
+        soil = _bed(True, settle_time=0.3)
+        blade = soil.add_tool("blade", trimesh.creation.box([0.04, 0.1, 0.1]))   # a small blade: the far half freezes
+        soil.set_tool_state(blade, [-0.22, 0.0, 0.03], [0, 0, 0, 1], [1.0, 0, 0], [0, 0, 0])
+        frozen = []
+        for _ in range(8):
+            soil.advance(0.01)
+            frozen.append(soil.n_frozen)
+        runs.append((soil.get_state(), frozen))
+    assert len(list((tmp_path / "dem_beds").glob("*.npz"))) == 1   # settled once, then loaded
+    (first, frozen_first), (second, frozen_second) = runs
+    assert frozen_first[0] > 0 and frozen_first == frozen_second   # both froze the far soil at their first step
+    for name in ("kin", "surf_id", "surf_h", "nbr_j", "nbr_h"):
+        assert np.array_equal(first[name], second[name]), name
 
 
 def _drop(soil, settle: float = 0.15):
