@@ -287,7 +287,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
     """
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
-    # only the blocks mark_blocks listed: in the others all are asleep with sleeping partners, every pair skipped
+    # only the blocks mark_blocks listed: in the others all are asleep and hold pairs with sleepers only, all skipped
     ti.loop_config(serialize=SERIAL_LOOPS)
     for slot in range(blk_list[0] * block):
         i = n_frozen + blk_list[slot // block + 1] * block + slot % block
@@ -643,8 +643,9 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
     """Which blocks of particles take part in this substep: hot ones (marked by the last step, or by
     mark_awake_blocks after a rebuild: an awake particle in them or a pair they hold with one) and those whose
     bounding box may meet a tool's SDF grid; pair_forces adds the block of a sleeper it asks to wake.
-    The others are asleep with sleeping partners only and out of every tool's reach, so computing them would
-    change nothing: a sleeping bed costs what its blocks cost to skip, whatever its size. skip = 0: all active.
+    The others are asleep, hold pairs with sleepers only and are out of every tool's reach, so computing them would
+    change nothing (an awake grain's pair with a sleeper of theirs is its own block's work): a sleeping bed costs
+    what its blocks cost to skip, whatever its size. skip = 0: all active.
     blk_list[0] = the number of active blocks, blk_list[1:] their indices (in no fixed order: each block's work
     is the same whichever thread does it, and the sums are taken in block order).
 
@@ -680,8 +681,8 @@ def mark_awake_blocks(n_frozen: ti.i32, n_act: ti.i32, block: ti.i32, kin: KIN, 
                       blk_hot: I32_1, blk_box: KIN, rev_off: I32_1, rev_holder: I32_1, tool_gap: F64_1):
     """After the particle order or the lists changed (a rebuild): each block's box anew, and hot the blocks that
     hold an awake particle (or one asked to wake) or a pair with one, as step() would have marked them. The
-    others are asleep with sleeping partners: computing them would change nothing, so a rebuild does not make the
-    next substep walk the whole bed. Blocks cover the particles after the frozen prefix (n_frozen on)."""
+    others are asleep and hold pairs with sleepers only: computing them would change nothing, so a rebuild does not
+    make the next substep walk the whole bed. Blocks cover the particles after the frozen prefix (n_frozen on)."""
     n_blocks = (n_act - n_frozen + block - 1) // block
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     for b in range(n_blocks):
@@ -722,9 +723,9 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
 
     block: particles per reduction block (reduction_block(n_act)). Returns the largest squared displacement since
     the last neighbour build (HUGE when a particle left the domain, so the caller rebuilds and drops it from the
-    lists). Blocks that mark_blocks left inactive are skipped (all asleep, no partner awake, no tool near: nothing
-    would change); each particle awake after its step marks its block and the blocks holding its pairs hot, and the block's
-    bounding box is kept for mark_blocks' tool test.
+    lists). Blocks that mark_blocks left inactive are skipped (all asleep, no pair of theirs with an awake grain, no
+    tool near: nothing would change); each particle awake after its step marks its block and the blocks holding its
+    pairs hot, and the block's bounding box is kept for mark_blocks' tool test.
     """
     running = stat[S_RUN] != 0.0
     if running:
