@@ -138,10 +138,10 @@ class ObserverBus:
             if run.resumed and saved is not None:
                 obs.set_state(saved.get("observer", {}))
                 self._next[i] = float(saved.get("next_t", 0.0))
-            self._period[i] = None if obs.rate is None else 1.0 / float(obs.rate)
             if isinstance(obs, Checkpointer):
                 obs.bus = self
             obs.start(sim, run)
+            self._period[i] = None if obs.rate is None else 1.0 / float(obs.rate)  # (start may set the rate)
             self._started = i + 1
         if not run.resumed:
             self.after_step(sim)  # the initial state, at t = 0

@@ -137,6 +137,68 @@ def test_a_peer_that_sends_no_frames_is_refused_before_anything_is_allocated(tmp
     assert code == 2 and err[-1].startswith("error: --ros-tcp: ") and "did not greet" in err[-1], err
 
 
+def test_a_handshake_that_is_no_endpoints_greeting_is_refused_in_one_line():
+    from opera_taichi.ros.transport_tcp import _greeting
+
+    assert _greeting(b'{"version": "v0.7.0", "metadata": "{\\"protocol\\": \\"ROS2\\"}"}\x00') == ("v0.7.0", "ROS2")
+    assert _greeting(b'{"version": "v0.7.0"}') == ("v0.7.0", "ROS1")   # the ROS 1 endpoint sends no metadata
+    for payload, words in [(b"[1]", "no JSON object"), (b'{"metadata": {"protocol": "ROS2"}}', "metadata is no"),
+                           (b'{"metadata": "[2]"}', "unknown protocol"), (b"\xff", "decode")]:
+        with pytest.raises(ValueError, match=words):
+            _greeting(payload)
+
+
+def _endpoint(server, protocol="ROS1"):
+    """Accept one client and greet it as a ROS-TCP-Endpoint; returns the connection."""
+    from opera_taichi.ros.transport_tcp import frame
+
+    conn, _ = server.accept()
+    conn.sendall(frame("__handshake", json.dumps({"version": "v0.7.0",
+                                                  "metadata": json.dumps({"protocol": protocol})}).encode()))
+    return conn
+
+
+def test_ros_tcp_input_survives_messages_it_cannot_read_and_stays_closed_once_closed():
+    """An endpoint's __error whose JSON is no object, then a command: the command arrives (the reader thread went on)
+    and the odd message is logged once. Then the endpoint drops the connection and the run closes the transport
+    while it waits to reconnect: it does not connect again."""
+    import socket
+    import threading
+
+    from opera_taichi.ros.transport_tcp import RosTcpTransport, frame
+
+    said, lost, got = [], threading.Event(), []
+    arrived = threading.Event()
+
+    def log(key, text):
+        said.append(text)
+        if key == ("tcp", "lost"):
+            lost.set()
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        accepted = []
+        greeter = threading.Thread(target=lambda: accepted.append(_endpoint(server)), daemon=True)
+        greeter.start()
+        transport = RosTcpTransport(f"127.0.0.1:{server.getsockname()[1]}", log)
+        greeter.join(10)
+        conn = accepted[0]
+        transport.subscribe("/zx120/boom/cmd", "com3_msgs/msg/JointCmd",
+                            lambda payload: (got.append(payload), arrived.set()))
+        conn.sendall(frame("__error", b"[1]") + frame("__warn", b'{"text": 5}') + frame("/zx120/boom/cmd", b"abc"))
+        assert arrived.wait(10) and got == [b"abc"]
+        assert said == ["ros-tcp endpoint error: [1]", "ros-tcp endpoint warn: 5"]
+        conn.shutdown(socket.SHUT_RDWR)
+        conn.close()
+        assert lost.wait(10)
+        transport.close()
+        assert not transport._reader.is_alive() and transport.sock is None
+        server.setblocking(False)
+        with pytest.raises(BlockingIOError):   # no connection came after the close
+            server.accept()
+
+
 def test_joint_cmd_is_operas_message():
     """Our com3_msgs/JointCmd has the fields of OPERA's .msg and its ROS 1 md5 sum (ROS's rule: the md5 of the
     definition without comments; the text is plain builtin types, so that is the field lines)."""
