@@ -31,6 +31,11 @@ def _cmd_validate(args) -> int:
             from .ros.topics import topic_table
 
             topic_table(checked, scene.bridge)
+            if scene.bridge.kind == "ros_tcp":  # as `run` checks it before it connects
+                from .ros.bridge import DEFAULT_ENDPOINT
+                from .ros.transport_tcp import parse_address
+
+                parse_address(scene.bridge.address or DEFAULT_ENDPOINT, "bridge.address")
     for text in checked.warnings:  # what a run would warn about at its start
         print(f"warning: {text}", file=sys.stderr)
     print(f"{args.scene}: ok")

@@ -165,7 +165,7 @@ def claim_run_folder(scene, out_dir, *, overwrite: bool = False, resume: bool = 
     key = "--out" if out_dir is not None else "output.dir"
     if resume:
         return out
-    holder = next((p for p in Path(out).resolve().parents if _is_run_folder(p)), None)
+    holder = next((p for p in Path(out).resolve().parents if is_run_folder(p)), None)
     if holder is not None:  # its --overwrite would delete this run, `runs` would not list it
         raise UserError(f"{key}: {out} lies inside the run folder {holder}; give a folder outside it")
     if not explicit:
@@ -405,7 +405,7 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def _is_run_folder(folder: Path) -> bool:
+def is_run_folder(folder: Path) -> bool:
     """Whether the folder holds a run's manifest (not another tool's manifest.json)."""
     try:
         manifest = json.loads((folder / "manifest.json").read_text())

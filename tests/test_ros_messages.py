@@ -81,6 +81,11 @@ def test_validate_and_run_report_bridge_mistakes_in_one_line(capsys):
     assert "--ros-tcp: expected HOST:PORT" in capsys.readouterr().err
     assert main(["run", str(DIG_CYCLE), "--bridge-after-motion"]) == 2
     assert "--bridge-after-motion: only with a bridge" in capsys.readouterr().err
+    # what `run` refuses before it connects, `validate` refuses too
+    bad_port = ["--set", "bridge={kind: ros_tcp, address: '127.0.0.1:99999'}"]
+    assert main(["validate", str(DIG_CYCLE), *bad_port]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bridge.address: expected HOST:PORT" in err, err
 
 
 def test_ros_tcp_without_an_endpoint_is_a_one_line_error(tmp_path, capsys):

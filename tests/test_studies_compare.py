@@ -247,6 +247,27 @@ def test_run_against_itself_is_zero_and_joint_log_lag_and_rate(tmp_path):
     assert late["joints_rmse_rad"] > 0.05
 
 
+def test_a_run_killed_while_it_wrote_joints_csv_compares_on_its_whole_rows(tmp_path, capsys):
+    """A run killed mid-row leaves joints.csv cut short: compared on its whole rows (the cut row left out); an empty
+    or header-only joints.csv is one line, exit 2 (both were tracebacks)."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    with open(tmp_path / "log.csv", "w") as fh:
+        fh.write("t,boom_joint,arm_joint\n")
+        for ti in np.arange(0.0, 20.0, 0.02):
+            fh.write(f"{ti:.3f},{0.4 * math.sin(0.5 * ti):.6f},{1.0 + 0.3 * math.cos(0.4 * ti):.6f}\n")
+    text = (run / "joints.csv").read_text()
+    cut = text.index("\n", len(text) // 2) + 8   # a few characters into a row
+    (run / "joints.csv").write_text(text[:cut])
+    res = cmp.compare(run, joints=tmp_path / "log.csv", out=tmp_path / "cmp")
+    assert res["joints_rmse_rad"] < 1e-3
+    for content, words in [("", "empty"), (text[:text.index("\n") + 1], "fewer than two rows of joint angles")]:
+        (run / "joints.csv").write_text(content)
+        code, err = _cli([run, "--joints", tmp_path / "log.csv", "--out", tmp_path / "cmp2"], capsys)
+        assert code == 2 and words in err and "\n" not in err, err
+
+
 def _cli(args, capsys):
     code = main(["compare", *map(str, args)])
     err = capsys.readouterr().err.strip()

@@ -163,6 +163,24 @@ def test_cli_bad_case_and_param_exit_2(capsys):
     assert "--resolution" in err[3]
 
 
+@pytest.mark.parametrize("case", ["blade_cut", "repose", "critical_height"])
+def test_a_case_writes_only_into_a_folder_of_its_own(tmp_path, capsys, case):
+    """--out a file or a run folder: one line, exit 2, and nothing written there (the blade's and the hopper's
+    meshes went into the run folder before it was refused; a file gave a traceback)."""
+    afile = tmp_path / "a.csv"
+    afile.write_text("t\n")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "manifest.json").write_text('{"status": "done", "scene": {}}')
+    for out, words in [(afile, "is a file, not a folder"), (run, f"is the run folder {run}"),
+                       (run / "case", f"lies inside the run folder {run}")]:
+        before = sorted(p.name for p in tmp_path.rglob("*"))
+        assert main(["validate-physics", case, "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"error: --out: {out} {words}") and "\n" not in err, err
+        assert sorted(p.name for p in tmp_path.rglob("*")) == before
+
+
 def test_runout_length_ends_at_the_first_gap():
     rng = np.random.default_rng(0)
     pos = np.zeros((2000, 3))

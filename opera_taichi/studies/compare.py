@@ -393,8 +393,16 @@ def run_joints(run_dir: Path, key: str = "RUN_DIR") -> tuple[np.ndarray, dict[st
     if not path.is_file():
         raise UserError(f"{key}: {run_dir} has no joints.csv (a run without a machine?)")
     cols = read_csv_columns(path)
-    t = np.asarray(cols["t"], float)
-    return t, {name[:-2]: np.asarray(v, float) for name, v in cols.items() if name.endswith(".q")}
+    if not cols:
+        raise UserError(f"{key}: {path}: empty (a run that ended before its first rows were written?)")
+    try:
+        t = np.asarray(cols["t"], float)
+        joints = {name[:-2]: np.asarray(v, float) for name, v in cols.items() if name.endswith(".q")}
+    except (KeyError, ValueError):
+        raise UserError(f"{key}: {path}: not a run's joints.csv (no t and <joint>.q columns of numbers)") from None
+    if len(t) < 2 or not joints:
+        raise UserError(f"{key}: {path}: fewer than two rows of joint angles (a run that ended at once?)")
+    return t, joints
 
 
 def machine_joints(run_dir: Path) -> tuple[dict | None, str | None]:

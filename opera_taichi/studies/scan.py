@@ -14,6 +14,7 @@ yaw; robust to the dug area, which it leaves out as outliers, and it reports the
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -189,8 +190,10 @@ def _read_text(path: Path) -> Scan:
         except ValueError:
             raise UserError(f"--terrain: {path}: the header names no x, y, z columns (got "
                             f"{', '.join(cells)[:120]})") from None
-    data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, usecols=cols, ndmin=2,
-                      encoding="utf-8-sig")
+    with warnings.catch_warnings():  # an empty file: read_scan says so in one line, not numpy in two
+        warnings.simplefilter("ignore", UserWarning)
+        data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, usecols=cols, ndmin=2,
+                          encoding="utf-8-sig")
     return Scan(path, data, "points")
 
 

@@ -622,6 +622,21 @@ def _critical_metrics(p: dict, resolution: str, out: Path, cut, particles_of) ->
     return metrics
 
 
+def check_case_folder(out: Path) -> None:
+    """A case's --out is a folder of its own: not a file, and neither a run folder nor inside one (the case writes
+    its run into OUT/run and its tool mesh beside it)."""
+    from ..runner import is_run_folder
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: {out} is a file, not a folder")
+    resolved = out.resolve()
+    holder = next((p for p in (resolved, *resolved.parents) if is_run_folder(p)), None)
+    if holder is not None:
+        raise UserError(f"--out: {out} {'is' if holder == resolved else 'lies inside'} the run folder {holder}; "
+                        f"give a folder of its own")
+
+
 def run_case(case: str, params=None, resolution: str = "default", out_dir: str | Path | None = None,
              arch: str | None = None, quiet: bool = True) -> dict:
     """Run one validation case; writes OUT/run/ (the usual run folder) and OUT/metrics.json; returns the metrics."""
@@ -630,6 +645,7 @@ def run_case(case: str, params=None, resolution: str = "default", out_dir: str |
 
     p = parse_params(case, params)
     out = Path(out_dir) if out_dir is not None else Path("runs") / f"validate-{case}-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_case_folder(out)  # before the case writes its tool mesh there
     if case == "critical_height":
         return _run_critical_height(p, resolution, out, arch, quiet)
     sets, geo = build_overrides(case, p, resolution, work_dir=out)
