@@ -5,15 +5,14 @@ The excavation scene at a coarse setting (12 cm grains, the dig path compressed 
 soil for most of it)."""
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import kill_after_first_checkpoint
 from opera_taichi.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,17 +40,7 @@ def alone_and_resumed(tmp_path_factory):
     # left alone, without checkpoints: taking a checkpoint must not change the run either
     assert subprocess.run(_cli(*run, "--out", str(alone)), env=_env(), cwd=ROOT).returncode == 0
     proc = subprocess.Popen(_cli(*run, "--checkpoint-every", "0.5", "--out", str(killed)), env=_env(), cwd=ROOT)
-    deadline = time.monotonic() + 600
-    try:
-        # kill as soon as the first checkpoint (t = 0.5 s of 3.5) is on disk: 3 s of digging are left to resume
-        while not list((killed / "checkpoints").glob("step-*.ckpt.npz")):
-            assert proc.poll() is None, "the run ended before its first checkpoint"
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    assert proc.returncode == -signal.SIGKILL
+    kill_after_first_checkpoint(proc, killed)   # (t = 0.5 s of 3.5): 3 s of digging are left to resume
     before = json.loads((killed / "manifest.json").read_text())
     resumed = subprocess.run(_cli("run", "--resume", str(killed)), env=_env(), cwd=ROOT, capture_output=True,
                              text=True)

@@ -132,11 +132,10 @@ def test_a_killed_and_resumed_run_has_every_ros1_message_once(tmp_path):
     messages of the run left alone, header seq included, each once. (The machine alone: no soil, fast.)"""
     import json
     import os
-    import signal
     import subprocess
     import sys
-    import time
 
+    from conftest import kill_after_first_checkpoint
     from opera_taichi.ros.bag import bag_parts
 
     scene = ROOT / "scenes" / "zx120_dig_cycle.yaml"
@@ -145,15 +144,7 @@ def test_a_killed_and_resumed_run_has_every_ros1_message_once(tmp_path):
     alone, killed = tmp_path / "alone", tmp_path / "killed"
     assert subprocess.run([*args, "--out", str(alone)], cwd=ROOT).returncode == 0
     proc = subprocess.Popen([*args, "--checkpoint-every", "0.5", "--out", str(killed)], cwd=ROOT)
-    deadline = time.monotonic() + 300
-    try:
-        while not list((killed / "checkpoints").glob("step-*.ckpt.npz")):
-            assert proc.poll() is None, "the run ended before its first checkpoint"
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+    kill_after_first_checkpoint(proc, killed)
     assert json.loads((killed / "manifest.json").read_text())["status"] == "running"
     latest = sorted((killed / "checkpoints").glob("step-*.ckpt.npz"))[-1]
     step = int(latest.name.split("-")[1].split(".")[0])

@@ -15,6 +15,7 @@ import pytest
 pytest.importorskip("dask.distributed")
 pytest.importorskip("optuna")
 
+from conftest import a_file_a_run_folder_and  # noqa: E402
 from opera_taichi.cli import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -186,16 +187,8 @@ def test_a_journal_without_a_record_of_its_objective_is_not_resumed(tmp_path, ca
 def test_a_calibration_writes_only_into_a_folder_of_its_own(tmp_path, capsys, no_trials):
     """--out a file, a run folder or a study's folder: one line, exit 2, before the first trial, nothing touched."""
     path = _calibration(tmp_path, "fit", COHESION)
-    afile = tmp_path / "a.csv"
-    afile.write_text("t\n")
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "manifest.json").write_text('{"status": "done", "scene": {}}')
-    study = tmp_path / "study"
-    study.mkdir()
-    (study / "study.json").write_text('{"name": "fit"}')
-    for out, words in [(afile, "is a file, not a folder"), (run, f"is the run folder {run}"),
-                       (study, "holds a study, not a calibration")]:
+    cases, study = a_file_a_run_folder_and(tmp_path, "study", "study.json", '{"name": "fit"}')
+    for out, words in cases + [(study, "holds a study, not a calibration")]:
         before = sorted(p.name for p in tmp_path.rglob("*"))
         assert main(["calibrate", str(path), "--workers", "1", "--out", str(out), "--quiet"]) == 2
         err = capsys.readouterr().err.strip()

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import a_file_a_run_folder_and
 from opera_taichi.cli import main
 from opera_taichi.errors import UserError
 from opera_taichi.studies.study import load_study
@@ -245,20 +246,12 @@ def test_a_study_writes_only_into_a_folder_of_its_own(tmp_path, capsys):
     nothing in that folder touched (a second study's points and tables went in among the first's)."""
     path = tmp_path / "s.yaml"
     path.write_text(BASE + "name: mine\nparameters: {soil.overrides.friction_angle_deg: [30, 35]}\n")
-    afile = tmp_path / "a.csv"
-    afile.write_text("t\n")
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "manifest.json").write_text('{"status": "done", "scene": {}}')
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "study.json").write_text('{"name": "theirs"}')
+    cases, other = a_file_a_run_folder_and(tmp_path, "other", "study.json", '{"name": "theirs"}')
     calibration = tmp_path / "cal"
     calibration.mkdir()
     (calibration / "optuna.journal").write_text("")
-    for out, words in [(afile, "is a file, not a folder"), (run, f"is the run folder {run}"),
-                       (run / "sub", f"lies inside the run folder {run}"),
-                       (other, "holds study 'theirs', not 'mine'"), (calibration, "holds a calibration, not a study")]:
+    for out, words in cases + [(other, "holds study 'theirs', not 'mine'"),
+                               (calibration, "holds a calibration, not a study")]:
         before = sorted(p.name for p in tmp_path.rglob("*"))
         assert main(["study", str(path), "--out", str(out), "--workers", "1"]) == 2
         err = capsys.readouterr().err.strip()
