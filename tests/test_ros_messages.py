@@ -554,3 +554,58 @@ def test_the_ros1_master_watch_says_a_gone_master_once_and_a_master_that_forgot_
     assert len({k for k, _ in said}) == len(said)        # each its own key: the bridge says each once
     assert [("stopped" in t, "answers again" in t, "does not know this node" in t) for t in texts][:5] == [
         (True, False, False), (False, True, False), (True, False, False), (False, False, True), (False, True, False)]
+
+
+def test_the_bridge_after_a_resume_a_stop_in_the_same_step_and_an_overflowing_twist():
+    """(1) a cmd_vel of huge finite numbers whose track speeds overflow: logged and ignored, not the run's end;
+    (2) a controller that takes over a machine already moving (a resumed run: the commands are gone) lets those
+    speeds expire as its own; (3) a target and a release of the stop arriving in the same step: the target, given
+    under the hold, does not act; (4) with --bridge-after-motion, a stop acts during the scene's motion."""
+    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    try:
+        log = _Log()
+        ctl = BridgeController(log, command_timeout=0.5)
+        ctl.bind(sim.model)
+        topics = _topics(sim)
+        T = typestore(2).types
+        V = T["geometry_msgs/msg/Vector3"]
+        ctl.handle(topics["tracks/cmd_vel"], T["geometry_msgs/msg/Twist"](linear=V(x=1e308, y=0, z=0),
+                                                                            angular=V(x=0, y=0, z=1e308)))
+        assert ctl.accepted == 0 and "give track speeds beyond any number" in log.lines[-1]
+        # a machine left moving by commands this controller never saw
+        arm = sim.machine.joint_names.index("arm_joint")
+        sim.step(ot.MachineControl(qd_target={"arm_joint": 0.2}, track_speeds=(0.4, 0.4)))
+        fresh = BridgeController(_Log(), command_timeout=0.5)
+        fresh.bind(sim.model)
+        while sim.t < 1.5:
+            sim.step(fresh.control(sim, sim.t_next))
+        q1, x1 = sim.machine.joint_states()[0][arm], sim.machine.base_pose()[0][0]
+        while sim.t < 2.0:
+            sim.step(fresh.control(sim, sim.t_next))
+        assert abs(sim.machine.joint_states()[0][arm] - q1) < 0.005 and abs(sim.machine.base_pose()[0][0] - x1) < 0.01
+        # under the hold: a boom target, then the release, both due in the same step
+        boom = sim.machine.joint_names.index("boom_joint")
+        fresh.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=True))
+        for _ in range(10):
+            sim.step(fresh.control(sim, sim.t_next))
+        held = sim.machine.joint_states()[0][boom]
+        fresh.handle(topics["boom/cmd"], _msg("std_msgs/msg/Float64", data=held + 0.3))
+        fresh.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=False))
+        for _ in range(250):
+            sim.step(fresh.control(sim, sim.t_next))
+        assert sim.machine.joint_states()[0][boom] == pytest.approx(held, abs=0.01)
+    finally:
+        sim.close()
+    scripted = ot.Simulation.from_scene(DIG_CYCLE)
+    try:
+        ctl = BridgeController(_Log(), after_motion=True)
+        ctl.bind(scripted.model)
+        ctl.handle(_topics(scripted)["emg_stop"], _msg("std_msgs/msg/Bool", data=True))
+        for _ in range(500):
+            scripted.step(ctl.control(scripted, scripted.t_next))
+        q_held = scripted.machine.joint_states()[0].copy()
+        for _ in range(500):   # the script goes on moving its targets; the held machine does not follow
+            scripted.step(ctl.control(scripted, scripted.t_next))
+        assert scripted.machine.held and np.max(np.abs(scripted.machine.joint_states()[0] - q_held)) < 0.005
+    finally:
+        scripted.close()

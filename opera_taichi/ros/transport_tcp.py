@@ -135,9 +135,9 @@ class RosTcpTransport:
                 raise ConnectionError("closing")
             self.version, self.protocol = version, protocol
             self.sock = sock
-        for topic, (typename, _) in self._subs.items():
+        for topic, (typename, _) in list(self._subs.items()):  # (copies: the main thread may be adding topics)
             self._command("__subscribe", {"topic": topic, "message_name": typename.replace("/msg/", "/")})
-        for topic, typename in self._pubs.items():
+        for topic, typename in list(self._pubs.items()):
             self._command("__publish", {"topic": topic, "message_name": typename.replace("/msg/", "/"),
                                         "queue_size": 10, "latch": False})
 
