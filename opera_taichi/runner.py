@@ -395,7 +395,9 @@ def write_plots(out: Path, joints, limits=None, density=None) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- resume
-def process_alive(pid: int) -> bool:
+def process_alive(pid) -> bool:
+    if not isinstance(pid, int) or isinstance(pid, bool) or not 0 < pid < 2 ** 31:
+        return False  # (0 and -1 would ask about a process group; no process has such a pid)
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

@@ -232,3 +232,24 @@ def test_a_refused_resume_leaves_the_run_folder_as_it_was(tmp_path, capsys):
                      controller=steady, resume=True)
     assert {p: data for p, (_, data) in _snapshot(out).items()} == before   # (the manifest was "running" meanwhile)
     assert json.loads((out / "manifest.json").read_text())["status"] == "interrupted"
+
+
+def test_runs_lists_damaged_and_odd_folders_with_a_true_status(tmp_path, capsys):
+    """A summary.json of something else, a start time that is a number, pids no process has: every folder is listed
+    (one bad folder used to cost the whole listing a traceback) and a run whose pid cannot be alive reads died."""
+    from opera_taichi.runs import list_runs
+
+    for name, pid in (("huge", 99_999_999_999_999), ("minus", -1), ("zero", 0)):
+        _fake_run(tmp_path / name, pid)
+    (tmp_path / "huge" / "summary.json").write_text("[1]")
+    (tmp_path / "minus" / "summary.json").write_text('{"tools": [1, 2]}')
+    (tmp_path / "zero" / "summary.json").write_text('{"tools": {"bucket": 3}}')
+    record = json.loads((tmp_path / "zero" / "manifest.json").read_text())
+    (tmp_path / "zero" / "manifest.json").write_text(json.dumps({**record, "started": 5}))
+    _fake_run(tmp_path / "iso", os.getpid())
+    record = json.loads((tmp_path / "iso" / "manifest.json").read_text())
+    (tmp_path / "iso" / "manifest.json").write_text(json.dumps({**record, "started": "2026-11-27T06:00:00"}))
+    rows = {r["name"]: r for r in list_runs(tmp_path)}
+    assert {n: rows[n]["status"] for n in rows} == {"huge": "died", "minus": "died", "zero": "died", "iso": "running"}
+    assert main(["runs", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.count("died") == 3

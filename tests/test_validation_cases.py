@@ -181,6 +181,41 @@ def test_a_case_writes_only_into_a_folder_of_its_own(tmp_path, capsys, case):
         assert sorted(p.name for p in tmp_path.rglob("*")) == before
 
 
+def test_all_and_resolution_refuse_a_report_or_out_they_cannot_write_before_any_run(tmp_path, capsys, monkeypatch):
+    """--report a folder, or in a folder that does not exist or is a file; --out a file; --resume into runs of
+    another resolution (a forgotten --resolution replaced them); a metrics.json that is no object: one line, exit 2,
+    or run again, never a traceback (those were found after hours of runs, or lost them)."""
+    import json
+
+    def no_runs(*args, **kwargs):
+        raise AssertionError("a case was about to run")
+
+    monkeypatch.setattr(report, "run_case", no_runs)
+    afile = tmp_path / "a.csv"
+    afile.write_text("t\n")
+    for argv, words in [(["all", "--report", str(tmp_path)], f"--report: {tmp_path} is a folder"),
+                        (["all", "--report", str(tmp_path / "new" / "x.md")], "which does not exist"),
+                        (["resolution", "--report", str(afile / "x.md")], "which is not a folder"),
+                        (["all", "--out", str(afile)], f"--out: {afile} is a file, not a folder"),
+                        (["resolution", "--out", str(afile)], f"--out: {afile} is a file, not a folder")]:
+        assert main(["validate-physics", *argv, "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err, err
+    kept = tmp_path / "coarse" / "passive_wall_H0.3"
+    kept.mkdir(parents=True)
+    (kept / "metrics.json").write_text(json.dumps({"case": "passive_wall", "resolution": "coarse"}))
+    assert main(["validate-physics", "all", "--out", str(tmp_path / "coarse"), "--resume", "--quiet",
+                 "--report", str(tmp_path / "r.md")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds a run at resolution coarse, not default; give --resolution coarse" in err, err
+    (kept / "run").mkdir()
+    for metrics, manifest in (("[]", '{"status": "done", "soil": {}}'),
+                              ('{"case": "passive_wall"}', '{"status": "done", "soil": []}')):
+        (kept / "metrics.json").write_text(metrics)
+        (kept / "run" / "manifest.json").write_text(manifest)
+        assert cases.finished_metrics("passive_wall", {}, "default", kept) is None
+
+
 def test_runout_length_ends_at_the_first_gap():
     rng = np.random.default_rng(0)
     pos = np.zeros((2000, 3))
@@ -217,10 +252,10 @@ def test_report_from_metrics(tmp_path):
                  **blade),
                m("blade_cut", "blade_3d_a90_d0.2_w1.0", 1250.0, 1230.8, None, depth=0.2, width=1.0, plane_strain=0.0,
                  **blade),
-               # two packings at a = 0.5: the slope gate takes their mean, 0.7
-               m("column_collapse", "column_a0.5_seed0", 0.6, 0.75, True, aspect_ratio=0.5, seed=0),
-               m("column_collapse", "column_a0.5_seed1", 0.8, 0.75, True, aspect_ratio=0.5, seed=1),
-               m("column_collapse", "column_a1", 1.4, 1.5, True, aspect_ratio=1.0)]
+               # three packings at each a: the slope gate takes their means, 0.7 and 1.4
+               *[m("column_collapse", f"column_a{a:g}_seed{seed}", value, 0.75 * 2 * a, True, aspect_ratio=a,
+                   seed=seed)
+                 for a, values in ((0.5, (0.6, 0.8, 0.7)), (1.0, (1.3, 1.5, 1.4))) for seed, value in enumerate(values)]]
     path = report.write_report(results, tmp_path / "validation.md", "opera-taichi validate-physics all")
     text = path.read_text()
     assert "opera-taichi validate-physics all" in text
@@ -232,6 +267,16 @@ def test_report_from_metrics(tmp_path):
     assert gates["blade draft ~ d^2 (d 0.3 vs 0.2)"]["measured"] == pytest.approx(2800 / 1300)  # plane strain
     assert gates["blade draft ~ w (w 1.5 vs 1.0)"]["measured"] == pytest.approx(1200 * 1.5 / (1250 * 1.0))
     assert gates["run-out log-log slope, a <= 1"]["measured"] == pytest.approx(1.0)
+    # a partial report: a packing and a blade missing, their ratio gates not run (a mean of two packings passed as
+    # the gate's mean of three; the d^2 row was left out without a word)
+    partial = [r for r in results if r["label"] not in ("column_a1_seed2", "blade_a90_d0.2")]
+    gates = {g["label"]: g for g in report.derived_gates(partial)}
+    assert gates["run-out log-log slope, a <= 1"]["passed"] is None
+    assert "not run: column_a1_seed2" in gates["run-out log-log slope, a <= 1"]["gate"]
+    assert gates["blade draft ~ d^2 (d 0.3 vs 0.2)"]["passed"] is None
+    assert report.failed_gates(partial) == []
+    text = report.write_report(partial, tmp_path / "partial.md", "opera-taichi validate-physics all").read_text()
+    assert "| blade draft ~ d^2 (d 0.3 vs 0.2) (within 10%; not run: blade_a90_d0.2) | not run |" in text
 
 
 def test_the_ratio_gates_find_their_runs_in_the_gate_set():
