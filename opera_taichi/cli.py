@@ -180,8 +180,8 @@ def _cmd_validate_physics(args) -> int:
     if args.case in ("all", "resolution"):
         if args.param:
             raise UserError(f"--param: not allowed with `{args.case}` (it runs a fixed set of cases)")
-        target = Path(args.report or ("docs/validation.md" if args.case == "all" else "docs/resolution.md"))
-        if target.is_dir() or not target.parent.is_dir():  # found now, not after hours of runs
+        target = Path(args.report) if args.report is not None else None
+        if target is not None and (target.is_dir() or not target.parent.is_dir()):  # now, not after hours of runs
             where = "does not exist" if not target.parent.exists() else "is not a folder"
             raise UserError(f"--report: {target} " + ("is a folder; give a file (e.g. report.md)" if target.is_dir()
                                                       else f"lies in {target.parent}, which {where}"))

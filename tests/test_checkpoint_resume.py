@@ -98,6 +98,11 @@ def test_the_resumed_bag_holds_every_message_once(alone_and_resumed):
     expected = _bag_messages([alone / "run.mcap"])
     assert len(expected) > 500
     assert _bag_messages(parts) == expected
+    # compare reads a run's own bag whole, its parts included, as the joint log
+    from opera_taichi.studies.compare import read_joint_log
+
+    t, q = read_joint_log(killed / "run.mcap")
+    assert t[0] == 0.0 and t[-1] > 3.4 and "boom_joint" in q   # (the first part alone ends at 0.5 s)
 
 
 def test_resume_refuses_a_finished_run_and_a_foreign_folder(alone_and_resumed, tmp_path, capsys):

@@ -594,6 +594,12 @@ def test_the_bridge_after_a_resume_a_stop_in_the_same_step_and_an_overflowing_tw
         for _ in range(250):
             sim.step(fresh.control(sim, sim.t_next))
         assert sim.machine.joint_states()[0][boom] == pytest.approx(held, abs=0.01)
+        # a release sent again (the machine no longer held) with a command in the same step: the command acts
+        fresh.handle(topics["boom/cmd"], _msg("std_msgs/msg/Float64", data=held + 0.3))
+        fresh.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=False))
+        for _ in range(250):
+            sim.step(fresh.control(sim, sim.t_next))
+        assert sim.machine.joint_states()[0][boom] > held + 0.1
     finally:
         sim.close()
     scripted = ot.Simulation.from_scene(DIG_CYCLE)

@@ -690,6 +690,11 @@ def test_nodata_and_units_as_gis_tools_write_them(tmp_path):
         tifffile.imwrite(str(tmp_path / "nodata.tif"), z, extratags=place + [(42113, "s", 0, nodata)])
         scan = scans.read_scan(tmp_path / "nodata.tif")
         assert len(scan.points) == 48 - 6 and np.all(scan.points[:, 2] == 1.5), nodata
+    # an integer raster whose nodata no int16 holds: a height of 0 stays a height
+    heights = np.full((6, 8), 7, np.int16)
+    heights[0, 0] = 0
+    tifffile.imwrite(str(tmp_path / "int.tif"), heights, extratags=place + [(42113, "s", 0, "-3.4e38")])
+    assert len(scans.read_scan(tmp_path / "int.tif").points) == 48
     for geokeys, words in [((3072, 2229), "us survey foot"), ((3072, 32654), None)]:
         keys = (1, 1, 0, 2, 1024, 0, 1, 1, *geokeys[:1], 0, 1, geokeys[1])
         tifffile.imwrite(str(tmp_path / "crs.tif"), z, extratags=place + [(34735, "H", len(keys), keys)])

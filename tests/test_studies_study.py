@@ -242,16 +242,12 @@ def test_a_metric_the_run_has_no_value_for_is_an_error_not_an_empty_cell(tmp_pat
 
 
 def test_a_study_writes_only_into_a_folder_of_its_own(tmp_path, capsys):
-    """--out a file, a run folder, another study's folder or a calibration's: refused in one line before any run,
-    nothing in that folder touched (a second study's points and tables went in among the first's)."""
+    """--out a file, a run folder or another study's folder: refused in one line before any run, nothing in that
+    folder touched (a second study's points and tables went in among the first's)."""
     path = tmp_path / "s.yaml"
     path.write_text(BASE + "name: mine\nparameters: {soil.overrides.friction_angle_deg: [30, 35]}\n")
     cases, other = a_file_a_run_folder_and(tmp_path, "other", "study.json", '{"name": "theirs"}')
-    calibration = tmp_path / "cal"
-    calibration.mkdir()
-    (calibration / "optuna.journal").write_text("")
-    for out, words in cases + [(other, "holds study 'theirs', not 'mine'"),
-                               (calibration, "holds a calibration, not a study")]:
+    for out, words in cases + [(other, "holds study 'theirs', not 'mine'")]:
         before = sorted(p.name for p in tmp_path.rglob("*"))
         assert main(["study", str(path), "--out", str(out), "--workers", "1"]) == 2
         err = capsys.readouterr().err.strip()

@@ -208,6 +208,10 @@ def test_all_and_resolution_refuse_a_report_or_out_they_cannot_write_before_any_
                  "--report", str(tmp_path / "r.md")]) == 2
     err = capsys.readouterr().err.strip()
     assert "holds a run at resolution coarse, not default; give --resolution coarse" in err, err
+    monkeypatch.chdir(tmp_path)   # the default report, docs/validation.md, from a folder without docs/
+    assert main(["validate-physics", "all", "--out", str(tmp_path / "coarse"), "--resolution", "coarse",
+                 "--report-only", "--quiet"]) == 2
+    assert "no finished run of the gate set" in capsys.readouterr().err
     (kept / "run").mkdir()
     for metrics, manifest in (("[]", '{"status": "done", "soil": {}}'),
                               ('{"case": "passive_wall"}', '{"status": "done", "soil": []}')):
@@ -277,6 +281,9 @@ def test_report_from_metrics(tmp_path):
     assert report.failed_gates(partial) == []
     text = report.write_report(partial, tmp_path / "partial.md", "opera-taichi validate-physics all").read_text()
     assert "| blade draft ~ d^2 (d 0.3 vs 0.2) (within 10%; not run: blade_a90_d0.2) | not run |" in text
+    # every packing at a = 1 stood as a column (no run-out): the slope gate fails, it does not crash the report
+    stood = [dict(r, measured=0.0) if r["label"].startswith("column_a1_") else r for r in results]
+    assert {g["label"]: g for g in report.derived_gates(stood)}["run-out log-log slope, a <= 1"]["passed"] is False
 
 
 def test_the_ratio_gates_find_their_runs_in_the_gate_set():

@@ -133,12 +133,14 @@ class BridgeController:
         merged: dict[str, MachineControl] = {}
         held = {name: m.held for name, m in sim.machines.items()}
         for _, name, mc in due:     # in arrival order: the latest command of a joint wins
-            if mc.hold is not None:
-                # a stop or a release ends what came before it in this step (the machine applies the hold first)
-                merged[name] = MachineControl(hold=mc.hold)
-                held[name] = mc.hold
-                if mc.hold:
-                    self._speeds = {k: v for k, v in self._speeds.items() if k[0] != name}
+            if mc.hold is True:  # a stop ends what came before it in this step (the machine applies it first)
+                merged[name] = MachineControl(hold=True)
+                held[name] = True
+                self._speeds = {k: v for k, v in self._speeds.items() if k[0] != name}
+                continue
+            if mc.hold is False:  # a release: what came under the hold was dropped below, what follows acts
+                merged.setdefault(name, MachineControl()).hold = False
+                held[name] = False
                 continue
             if held.get(name):
                 continue            # given while the machine is held: ignored

@@ -357,11 +357,15 @@ def _read_bag(path: Path, key: str):
     try:
         # a file of a ROS 2 bag folder (beside its metadata.yaml) opens as the folder; a run's own run.mcap alone
         in_folder = path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file()
-        bag_path = path.parent if in_folder else path
+        bag_paths = [path.parent if in_folder else path]
+        if not in_folder and path.name in ("run.mcap", "run.bag"):  # a run's bag, in parts with checkpoints
+            from ..ros.bag import bag_parts
+
+            bag_paths = bag_parts(path.parent, path.suffix) or bag_paths
         from rosbags.typesys import Stores, get_typestore
 
         # a bag without its message definitions (ROS 2 before Iron) reads with the standard ones
-        with AnyReader([bag_path], default_typestore=get_typestore(Stores.LATEST)) as reader:
+        with AnyReader(bag_paths, default_typestore=get_typestore(Stores.LATEST)) as reader:
             conns = [c for c in reader.connections if c.msgtype.endswith("JointState")]
             if not conns:
                 found = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})

@@ -259,9 +259,12 @@ def _read_geotiff(path: Path) -> Scan:
     z = np.asarray(stored, float)
     if _NODATA in tags:
         nodata = _float_or_none(str(tags[_NODATA]).strip("\x00 "))
-        if nodata is not None:  # compared as stored: -9999.9 in a float32 raster is float32(-9999.9)
-            with np.errstate(over="ignore", invalid="ignore"):
-                z[(stored == np.asarray(nodata).astype(stored.dtype)) | (z == nodata)] = np.nan
+        if nodata is not None:
+            missing = z == nodata
+            if np.issubdtype(stored.dtype, np.floating):  # as stored: -9999.9 in float32 is float32(-9999.9)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    missing |= stored == np.asarray(nodata).astype(stored.dtype)
+            z[missing] = np.nan
     z[np.abs(z) > NODATA_MAGNITUDE] = np.nan  # a float's maximum, GIS tools' usual fill, is no elevation
     keys = {}
     raw = tags.get(_GEOKEYS)

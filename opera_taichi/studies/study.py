@@ -221,7 +221,8 @@ def _metric(spec, label: str, i: int):
 
 def check_out_folder(out: Path, name: str, label: str, calibrate: bool = False) -> None:
     """A study's or a calibration's folder: new, or its own from an earlier session (to go on from); not a file, not
-    a run folder or inside one, not another study's or calibration's (their tables and runs would mix)."""
+    a run folder or inside one, not another study's (their tables and runs would mix; a calibration's journal
+    guards its own trials, calibrate.open_study)."""
     from ..runner import is_run_folder
 
     if out.exists() and not out.is_dir():
@@ -230,9 +231,6 @@ def check_out_folder(out: Path, name: str, label: str, calibrate: bool = False) 
     if holder is not None:
         raise UserError(f"{label}: out: {out} {'is' if holder == out else 'lies inside'} the run folder {holder}; "
                         f"give a folder of its own")
-    kind, other = ("calibration", "study") if calibrate else ("study", "calibration")
-    if (out / ("study.json" if calibrate else "optuna.journal")).is_file():
-        raise UserError(f"{label}: out: {out} holds a {other}, not a {kind}; give another folder")
     try:
         recorded = json.loads((out / "study.json").read_text()).get("name") if not calibrate else None
     except (OSError, ValueError, AttributeError):
