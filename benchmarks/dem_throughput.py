@@ -24,6 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench_args import at_least, host_line  # noqa: E402  (beside this script)
+
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
@@ -95,11 +97,21 @@ def excavation(duration: float | None, sets: list[str], arch: str) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", default="10000,50000,200000", help="particle counts, comma separated")
+    def sizes(text: str) -> str:
+        try:
+            ok = all(int(n) >= 100 for n in text.split(","))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise argparse.ArgumentTypeError(f"expected particle counts >= 100, comma separated, got {text!r}")
+        return text
+
+    parser.add_argument("--sizes", type=sizes, default="10000,50000,200000", help="particle counts, comma separated")
     parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda", "auto"))
-    parser.add_argument("--steps", type=int, default=2000, help="timed substeps per size")
-    parser.add_argument("--settle-time", type=float, default=1.0, help="bed settling time, s (cached)")
-    parser.add_argument("--radius", type=float, default=0.02, help="particle radius, m")
+    parser.add_argument("--steps", type=at_least(1, int, "a whole number"), default=2000,
+                        help="timed substeps per size")
+    parser.add_argument("--settle-time", type=at_least(0.01), default=1.0, help="bed settling time, s (cached)")
+    parser.add_argument("--radius", type=at_least(0.001), default=0.02, help="particle radius, m")
     parser.add_argument("--no-excavation", action="store_true", help="skip the zx120_excavation.yaml run")
     parser.add_argument("--excavation-duration", type=float, default=None,
                         help="simulated seconds of the excavation run (default: the scene's)")
@@ -112,6 +124,7 @@ def main(argv=None) -> int:
     import taichi as ti
 
     threads = ti.lang.impl.current_cfg().cpu_max_num_threads if arch == "x64" else None
+    print(host_line())
     print(f"arch {arch}, cpu threads {threads}, os cpus {os.cpu_count()}")
     print(f"{'particles':>10} {'substeps':>9} {'wall s':>8} {'Mparticle-steps/s':>18} {'min-max':>11} "
           f"{'rebuilds':>9} {'nbrs/particle':>14} {'dt s':>9} {'bed build s':>12}")

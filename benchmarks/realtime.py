@@ -31,6 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from bench_args import at_least, host_line  # noqa: E402  (beside this script)
+
 import numpy as np  # noqa: E402
 
 from opera_taichi.observers import Observer  # noqa: E402
@@ -111,15 +113,15 @@ def main() -> int:
     parser.add_argument("--sleep", choices=("both", "on", "off"), default="both")
     parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda", "auto"))
     parser.add_argument("--duration", type=positive, default=25.0)
-    parser.add_argument("--repeat", type=int, default=1, help="runs per row: the median RTF and its range")
+    parser.add_argument("--repeat", type=at_least(1, int, "a whole number"), default=1,
+                        help="runs per row: the median RTF and its range")
     parser.add_argument("--spin-wait", action="store_true", help="sim.spin_wait: keep the other cores running")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
     runs = [(ROOT / "scenes" / "zx120_excavation.yaml", r) for r in args.radii]
     if args.site:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
-    if args.repeat < 1:
-        parser.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
+    print(host_line() + "\n")
     if args.spin_wait:
         print("sim.spin_wait on\n")
     print("| scene | radius m | sleep | particles | awake (mean) | RTF | RTF range | M particle-steps/s "

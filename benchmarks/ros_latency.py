@@ -32,6 +32,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from bench_args import at_least, host_line  # noqa: E402  (beside this script)
 ENDPOINT = ROOT.parent / "shared" / "thirdparty" / "ros_tcp_endpoint-ros1" / "src"
 
 
@@ -158,12 +160,13 @@ def rtf(duration: float, args: list[str], env: dict, tmp: Path, name: str, liste
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--transport", choices=("ros1", "ros_tcp", "both"), default="both")
-    ap.add_argument("--repeats", type=int, default=10)
-    ap.add_argument("--rtf-duration", type=float, default=5.0)
-    ap.add_argument("--rtf-repeats", type=int, default=2)
+    ap.add_argument("--repeats", type=at_least(1, int, "a whole number"), default=10)
+    ap.add_argument("--rtf-duration", type=at_least(0.1), default=5.0)
+    ap.add_argument("--rtf-repeats", type=at_least(1, int, "a whole number"), default=2)
     ap.add_argument("--no-rtf", action="store_true")
     ap.add_argument("--no-latency", action="store_true")
     a = ap.parse_args()
+    print(host_line())
     tmp = Path(tempfile.mkdtemp(prefix="ros-bench-"))
     port = free_port()
     uri = f"http://127.0.0.1:{port}"

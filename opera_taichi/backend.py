@@ -12,6 +12,7 @@ from taichi.lang.matrix import MatrixType
 from .errors import UserError
 
 _started: str | None = None
+FAST_MATH = False   # what the kernels compile with; part of what a cached settled bed is keyed by
 
 
 def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> str:
@@ -31,7 +32,7 @@ def init_taichi(arch: str = "cpu", *, debug: bool = False, default_fp=None) -> s
                         f"process); use --arch {'cuda' if _started == 'cuda' else 'cpu'} or another process")
     # fast_math off: IEEE arithmetic, so a kernel's bits do not depend on how the compiler arranges it (with it on, the
     # soil's serial and threaded variants of a substep parted by an ulp in a dig on an AVX-512 host; no slower)
-    kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0, fast_math=False)
+    kwargs = dict(offline_cache=True, debug=debug, log_level=ti.WARN, random_seed=0, fast_math=FAST_MATH)
     if default_fp is not None:
         kwargs["default_fp"] = default_fp
     # Taichi prints its "Starting on arch=..." line to stdout: a diagnostic, so to stderr (stdout stays the run's
@@ -58,6 +59,13 @@ def _init(arch: str, kwargs: dict) -> None:
 
 def current_arch() -> str | None:
     return _started
+
+
+def compiled_for() -> dict:
+    """What a kernel's bits depend on beyond its code and inputs: the backend (the GPU's layout sums in another order
+    than the CPU's; x64 and arm64 compile differently) and the arithmetic. Results cached across runs (settled
+    beds) are keyed by it, so a bed settled on a GPU is not what a CPU run starts from."""
+    return {"arch": _started, "fast_math": FAST_MATH}
 
 
 def host_view(arr) -> np.ndarray | None:

@@ -31,6 +31,11 @@ def _cmd_validate(args) -> int:
             from .ros.topics import topic_table
 
             topic_table(checked, scene.bridge)
+            if scene.bridge.kind == "ros_tcp":  # as `run` checks it before it connects
+                from .ros.bridge import DEFAULT_ENDPOINT
+                from .ros.transport_tcp import parse_address
+
+                parse_address(scene.bridge.address or DEFAULT_ENDPOINT, "bridge.address")
     for text in checked.warnings:  # what a run would warn about at its start
         print(f"warning: {text}", file=sys.stderr)
     print(f"{args.scene}: ok")
@@ -175,6 +180,11 @@ def _cmd_validate_physics(args) -> int:
     if args.case in ("all", "resolution"):
         if args.param:
             raise UserError(f"--param: not allowed with `{args.case}` (it runs a fixed set of cases)")
+        target = Path(args.report) if args.report is not None else None
+        if target is not None and (target.is_dir() or not target.parent.is_dir()):  # now, not after hours of runs
+            where = "does not exist" if not target.parent.exists() else "is not a folder"
+            raise UserError(f"--report: {target} " + ("is a folder; give a file (e.g. report.md)" if target.is_dir()
+                                                      else f"lies in {target.parent}, which {where}"))
         from .validation import report, resolution
 
         if args.case == "all":

@@ -15,6 +15,8 @@ from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
+from .errors import UserError
+
 
 @dataclass
 class MachineControl:
@@ -59,6 +61,8 @@ def as_control(value, machine_names: list[str], t: float) -> Control:
     if isinstance(value, Control):
         if math.isnan(value.t):  # a Control made without a time is for this step
             value.t = t
+        if not all(isinstance(v, MachineControl) for v in value.machines.values()):
+            value.machines = {k: _machine_control(k, v) for k, v in value.machines.items()}
         return value
     if value is None:
         return Control({}, t, "hold-last")
@@ -66,12 +70,21 @@ def as_control(value, machine_names: list[str], t: float) -> Control:
         return Control({_only(machine_names): value}, t, "python")
     if isinstance(value, dict):
         if value and all(k in machine_names for k in value):
-            return Control({k: v if isinstance(v, MachineControl) else MachineControl(q_target=dict(v))
-                            for k, v in value.items()}, t, "python")
+            return Control({k: _machine_control(k, v) for k, v in value.items()}, t, "python")
         return Control({_only(machine_names): MachineControl(q_target={k: _as_float(v) for k, v in value.items()})},
                        t, "python")
     raise TypeError(f"a control is a Control, a MachineControl, a {{joint: rad}} dict or None, got "
                     f"{type(value).__name__}")
+
+
+def _machine_control(machine: str, value) -> MachineControl:
+    """One machine's part of a control: a MachineControl, or a {joint: rad} dict of position targets."""
+    if isinstance(value, MachineControl):
+        return value
+    if isinstance(value, dict):
+        return MachineControl(q_target={k: _as_float(v) for k, v in value.items()})
+    raise UserError(f"control of machine {machine!r}: expected a MachineControl or a {{joint: rad}} dict, got "
+                    f"{type(value).__name__} {value!r:.60}")
 
 
 def real_number(value) -> float | None:

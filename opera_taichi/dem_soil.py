@@ -25,7 +25,7 @@ from dataclasses import asdict
 import numpy as np
 import taichi as ti
 
-from .backend import KernelSequence, current_arch, host_view, precompile
+from .backend import KernelSequence, compiled_for, current_arch, host_view, precompile
 from .errors import DivergenceError, UserError
 from .geometry import quat_to_matrix
 from .kernels import dem
@@ -829,7 +829,8 @@ class DemSoil:
         micro = {k: v for k, v in asdict(self.micro).items() if k not in ("adhesion_force", "adhesion_range")}
         spec = dict(version=SOLVER_VERSION, micro=micro, beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
                     domain=(self.domain_min.tolist(), self.domain_max.tolist()), seed=self.seed, dt=self.dt,
-                    gravity=self.gravity.tolist(), settle_time=settle_time, frictionless=POUR_FRICTIONLESS)
+                    gravity=self.gravity.tolist(), settle_time=settle_time, frictionless=POUR_FRICTIONLESS,
+                    compiled_for=compiled_for())
         if self.surface is not None:  # a bed filled to a scanned surface: keyed by that surface
             spec["surface"] = hashlib.sha256(b"".join(np.ascontiguousarray(a, np.float64).tobytes()
                                                       for a in self.surface)).hexdigest()

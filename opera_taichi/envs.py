@@ -36,6 +36,7 @@ DEFAULT_ENERGY_COEF = 1e-4
 
 FORCE_BOUND = 1.0e6    # N, |soil force on the bucket| in the observation (clipped there)
 TORQUE_BOUND = 1.0e6   # N m
+NOISE_MARGIN = 1.0     # rad: a reset's init_noise may exceed the environment's by this (the observation bound)
 REACH_BOUND = 20.0     # m, |tip position - machine base| per axis in the observation
 
 
@@ -91,10 +92,20 @@ class ZX120DigEnv(gym.Env):
         self.model = build_model(self.scene)
         if self.model.soil is None:
             raise ValueError(f"{self.scene_path}: the scene has no soil to dig")
-        mm = self.model.machine(machine)
+        try:
+            mm = self.model.machine(machine)
+        except KeyError as exc:
+            raise ValueError(f"machine: {exc.args[0]}") from None
         self.machine_name = mm.name
         self.joint_names = list(mm.joints)
         self.dt = float(self.model.dt)
+        for name, value, least in (("control_period", control_period, -math.inf),
+                                   ("max_episode_seconds", max_episode_seconds, -math.inf),
+                                   ("init_noise", init_noise, 0.0), ("energy_coef", energy_coef, 0.0)):
+            if not (isinstance(value, (int, float, np.number)) and math.isfinite(value) and value >= least):
+                raise ValueError(f"{name}: expected a finite number{' >= 0' if least == 0.0 else ''}, got {value!r}")
+        if reward_fn is not None and not callable(reward_fn):
+            raise ValueError(f"reward_fn: expected a function reward_fn(env, prev_obs, obs, action), got {reward_fn!r}")
         self.n_sub = int(round(float(control_period) / self.dt))
         if self.n_sub < 1 or not math.isclose(self.n_sub * self.dt, float(control_period), rel_tol=1e-6):
             raise ValueError(f"control_period: {control_period} s is not a whole number (>= 1) of rigid steps of "
@@ -121,7 +132,7 @@ class ZX120DigEnv(gym.Env):
         q0 = np.array([mm.initial_q[j] for j in self.joint_names])
         lower = np.array([desc.joint_limits.get(j, (-math.inf, math.inf))[0] for j in self.joint_names])
         upper = np.array([desc.joint_limits.get(j, (-math.inf, math.inf))[1] for j in self.joint_names])
-        reach = np.abs(q0) + self.init_noise + max_speed * self.max_episode_seconds + 1.0
+        reach = np.abs(q0) + self.init_noise + NOISE_MARGIN + max_speed * self.max_episode_seconds
         self._q_low = np.where(np.isfinite(lower), lower, -reach).astype(np.float32)
         self._q_high = np.where(np.isfinite(upper), upper, reach).astype(np.float32)
         self._lower, self._upper = lower, upper
@@ -157,7 +168,14 @@ class ZX120DigEnv(gym.Env):
         unknown = set(options or {}) - {"init_noise"}
         if unknown:
             raise ValueError(f"reset options: unknown {sorted(unknown)} (known: init_noise)")
-        noise = float((options or {}).get("init_noise", self.init_noise))
+        noise = (options or {}).get("init_noise", self.init_noise)
+        # (an unlimited joint's observation bound was sized for the constructor's noise and a margin: a larger one
+        # could start it beyond the bound, where the observation would be clipped)
+        if not (isinstance(noise, (int, float, np.number)) and 0.0 <= noise <= self.init_noise + NOISE_MARGIN):
+            raise ValueError(f"reset options: init_noise: expected a number from 0 to {self.init_noise + NOISE_MARGIN:g} "
+                             f"rad (the environment's init_noise + {NOISE_MARGIN:g}; make it with a larger one), got "
+                             f"{noise!r}")
+        noise = float(noise)
         if self.sim is None:
             self._build()
         state = self._initial
@@ -180,7 +198,11 @@ class ZX120DigEnv(gym.Env):
         if self._steps >= self.max_steps:
             raise RuntimeError(f"the episode was truncated at max_episode_seconds = {self.max_episode_seconds:g} s; "
                                f"call reset()")
-        action = np.asarray(action, dtype=np.float64)
+        try:
+            action = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action: expected {len(self.joint_names)} finite joint velocities (rad/s), got "
+                             f"{action!r:.80}") from None
         if action.shape != (len(self.joint_names),) or not np.all(np.isfinite(action)):
             raise ValueError(f"action: expected {len(self.joint_names)} finite joint velocities (rad/s), got {action}")
         action = np.clip(action, -self.max_speed, self.max_speed)

@@ -159,6 +159,11 @@ class BulletMachine:
         """Position targets (rad), clipped to the joint limits; joints not named keep their command."""
         self.command(q_target=q_cmd)
 
+    @property
+    def held(self) -> bool:
+        """Whether the emergency stop is latched."""
+        return self._hold
+
     def command(self, q_target=None, qd_target=None, track_speeds=None, hold=None) -> None:
         """Apply one step's commands: position targets (rad, clipped to the joint limits, a warning once per joint
         when clipped), velocity targets (rad/s, capped by the actuators), track speeds (m/s) and the emergency stop

@@ -138,10 +138,10 @@ class ObserverBus:
             if run.resumed and saved is not None:
                 obs.set_state(saved.get("observer", {}))
                 self._next[i] = float(saved.get("next_t", 0.0))
-            self._period[i] = None if obs.rate is None else 1.0 / float(obs.rate)
             if isinstance(obs, Checkpointer):
                 obs.bus = self
             obs.start(sim, run)
+            self._period[i] = None if obs.rate is None else 1.0 / float(obs.rate)  # (start may set the rate)
             self._started = i + 1
         if not run.resumed:
             self.after_step(sim)  # the initial state, at t = 0
@@ -181,12 +181,21 @@ class ObserverBus:
 
 
 # ---------------------------------------------------------------------------------------------- run-folder files
+def _fmt(v) -> str:
+    return f"{float(v):.9g}"
+
+
+def _exact(v) -> str:
+    return repr(float(v))  # the shortest text that reads back as the same double
+
+
 class CsvObserver(Observer):
     """A CSV file in the run folder, one row per sample (several for per-tool files), flushed as the run goes;
     a resumed run truncates it to the bytes of its checkpoint and appends."""
 
     FLUSH_EVERY = 200
     filename = ""
+    fmt = staticmethod(_fmt)  # a number's text: 9 significant digits
 
     def header(self, sim) -> list[str]:
         raise NotImplementedError
@@ -215,8 +224,9 @@ class CsvObserver(Observer):
 
     def sample(self, sim) -> None:
         t = _fmt(sim.t)
+        fmt = self.fmt
         for row in self.rows(sim):
-            self._writer.writerow([t] + [v if isinstance(v, str) else _fmt(v) for v in row])
+            self._writer.writerow([t] + [v if isinstance(v, str) else fmt(v) for v in row])
         self._rows += 1
         if self._rows % self.FLUSH_EVERY == 0:
             self._fh.flush()
@@ -234,10 +244,6 @@ class CsvObserver(Observer):
     def close(self, sim, status, message) -> None:
         if not self._fh.closed:
             self._fh.close()
-
-
-def _fmt(v) -> str:
-    return f"{float(v):.9g}"
 
 
 class JointsCsv(CsvObserver):
@@ -394,6 +400,7 @@ class SoilMassCsv(CsvObserver):
     """soil_mass.csv: t, mass_kg, particles_kg, out_of_domain_kg, in_<tool>_kg (mass inside each tool's hull)."""
 
     filename = "soil_mass.csv"
+    fmt = staticmethod(_exact)  # every digit: the mass balance holds to round-off in the file too
 
     def __init__(self, rate: float):
         self.rate = rate

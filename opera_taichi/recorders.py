@@ -36,10 +36,14 @@ def write_terrain(path: Path, x: np.ndarray, y: np.ndarray, z: np.ndarray, t: fl
 
 
 def read_csv_columns(path: Path) -> dict[str, np.ndarray | list[str]]:
-    """Columns of a run-folder CSV by name (numbers as float arrays, text as lists)."""
-    with open(path, newline="", encoding="utf-8") as fh:
+    """Columns of a run-folder CSV by name (numbers as float arrays, text as lists); {} for an empty file. A row
+    with fewer cells than the header (the last row of a run killed while it wrote it) is left out."""
+    with open(path, newline="", encoding="utf-8", errors="replace") as fh:
         rows = list(csv.reader(fh))
-    header, body = rows[0], rows[1:]
+    if not rows:
+        return {}
+    header = rows[0]
+    body = [r for r in rows[1:] if len(r) == len(header)]
     out = {}
     for i, name in enumerate(header):
         col = [r[i] for r in body]

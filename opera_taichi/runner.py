@@ -165,7 +165,7 @@ def claim_run_folder(scene, out_dir, *, overwrite: bool = False, resume: bool = 
     key = "--out" if out_dir is not None else "output.dir"
     if resume:
         return out
-    holder = next((p for p in Path(out).resolve().parents if _is_run_folder(p)), None)
+    holder = next((p for p in Path(out).resolve().parents if is_run_folder(p)), None)
     if holder is not None:  # its --overwrite would delete this run, `runs` would not list it
         raise UserError(f"{key}: {out} lies inside the run folder {holder}; give a folder outside it")
     if not explicit:
@@ -265,7 +265,9 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
         for w in model.warnings:
             print(f"warning: {w}", file=sys.stderr)
     arch = arch or scene.sim.arch
+    record_before = None  # a resume's manifest as it was: put back if the resume fails before its checkpoint loads
     if resume:
+        record_before = (out / "manifest.json").read_bytes()
         previous, data = run_folder_status(out)
         driven = data.get("driver", "script")
         if driven != "script" and driver_of(controller) == "script":
@@ -298,6 +300,7 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
             states = {}
             if resume:
                 states = sim.load_checkpoint(ckpt).get("observers", {})
+                record_before = None  # from here on the folder is this process's to record
                 manifest.data.setdefault("resumed", []).append(
                     {"at": now_iso(), "from_checkpoint": ckpt.name, "sim_time": sim.t, "pid": os.getpid(),
                      "previous_status": manifest.data.get("status_before_resume", "running")})
@@ -335,27 +338,34 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
         status, message = "error", f"{type(exc).__name__}: {exc}"
         raise
     finally:
-        wall = time.perf_counter() - wall_start
-        done = (sim.t - t_start) if sim is not None else 0.0
-        # wall time and real-time factor are this process's: a resumed run's simulated time so far is sim_time,
-        # of which this process ran sim_time_this_run_s
-        manifest.data.update(sim_time=round(sim.t, 9) if sim is not None else 0.0, wall_time_s=round(wall, 3),
-                             sim_time_this_run_s=round(done, 9),
-                             real_time_factor=(done / wall) if wall > 0 and done > 0 else None)
-        if sim is not None and sim.soil is not None:
-            manifest.data["particle_steps_per_s"] = (sim.soil.n_particles * done / sim.soil.dt / wall) \
-                if wall > 0 else None
-            manifest.data["soil_mass_final"] = sim.soil.mass_budget()
-        if sim is not None and sim.warnings:
-            manifest.data["run_warnings"] = list(sim.warnings)
-        try:
-            if bus is not None:
-                bus.close(sim, status, message)
-            else:
-                manifest.close(sim, status, message)
-        finally:
+        if record_before is not None:
+            # the resume failed before its checkpoint loaded (another scene's checkpoint, no GPU, Ctrl-C while it
+            # set up): nothing of the run changed, so its record stays as it was
+            (out / "manifest.json").write_bytes(record_before)
             if sim is not None:
                 sim.close()
+        else:
+            wall = time.perf_counter() - wall_start
+            done = (sim.t - t_start) if sim is not None else 0.0
+            # wall time and real-time factor are this process's: a resumed run's simulated time so far is sim_time,
+            # of which this process ran sim_time_this_run_s
+            manifest.data.update(sim_time=round(sim.t, 9) if sim is not None else 0.0, wall_time_s=round(wall, 3),
+                                 sim_time_this_run_s=round(done, 9),
+                                 real_time_factor=(done / wall) if wall > 0 and done > 0 else None)
+            if sim is not None and sim.soil is not None:
+                manifest.data["particle_steps_per_s"] = (sim.soil.n_particles * done / sim.soil.dt / wall) \
+                    if wall > 0 else None
+                manifest.data["soil_mass_final"] = sim.soil.mass_budget()
+            if sim is not None and sim.warnings:
+                manifest.data["run_warnings"] = list(sim.warnings)
+            try:
+                if bus is not None:
+                    bus.close(sim, status, message)
+                else:
+                    manifest.close(sim, status, message)
+            finally:
+                if sim is not None:
+                    sim.close()
     return RunResult(out, status, sim.t, wall, manifest.data["real_time_factor"] or 0.0,
                      int(manifest.data.get("particles") or 0), message)
 
@@ -385,7 +395,9 @@ def write_plots(out: Path, joints, limits=None, density=None) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- resume
-def process_alive(pid: int) -> bool:
+def process_alive(pid) -> bool:
+    if not isinstance(pid, int) or isinstance(pid, bool) or not 0 < pid < 2 ** 31:
+        return False  # (0 and -1 would ask about a process group; no process has such a pid)
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -395,7 +407,7 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def _is_run_folder(folder: Path) -> bool:
+def is_run_folder(folder: Path) -> bool:
     """Whether the folder holds a run's manifest (not another tool's manifest.json)."""
     try:
         manifest = json.loads((folder / "manifest.json").read_text())

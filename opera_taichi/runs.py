@@ -86,11 +86,12 @@ def run_row(run_dir) -> dict:
         summary = json.loads((run_dir / "summary.json").read_text())
     except (OSError, ValueError):
         pass
-    tools = (summary or {}).get("tools") or {}
-    if tools:
+    tools = summary.get("tools") if isinstance(summary, dict) else None
+    if isinstance(tools, dict) and tools:  # (a summary of something else, or damaged: read from the CSVs)
         name, entry = next(iter(tools.items()))
-        row.update(bucket=name, bucket_kg=_float(entry.get("soil_held_kg")),
-                   peak_force_N=_float(entry.get("peak_force_N")))
+        if isinstance(entry, dict):
+            row.update(bucket=name, bucket_kg=_float(entry.get("soil_held_kg")),
+                       peak_force_N=_float(entry.get("peak_force_N")))
     if row["bucket_kg"] is None or row["peak_force_N"] is None:
         tool, kg, peak = _from_files(run_dir)
         row["bucket"] = row["bucket"] or tool
@@ -106,7 +107,7 @@ def list_runs(folder) -> list[dict]:
     first. status is the manifest's, or 'died' for a run that says running whose process is gone, or 'unreadable'."""
     folder = Path(folder)
     rows = [run_row(p) for p in _run_folders(folder)]
-    rows.sort(key=lambda r: (r["started"] or "", r["folder"]))
+    rows.sort(key=lambda r: (str(r["started"] or ""), r["folder"]))
     return rows
 
 

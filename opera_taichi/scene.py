@@ -680,7 +680,9 @@ class OutputConfig(_Model):
     replay_rate: Rate = Field(10.0, description="replay.bin frame rate, Hz of simulated time; at most 1/sim.dt.")
     bag: Optional[_choice("mcap", "ros1")] = Field(
         None, description="Also write the run's ROS topics (the bridge's topics and rates): `mcap` = run.mcap (ROS 2 "
-                          "schemas, CDR; ros2 bag, Foxglove, rosbags), `ros1` = run.bag (ROS 1); null = none.")
+                          "schemas, CDR; ros2 bag, Foxglove, rosbags), `ros1` = run.bag (ROS 1); null = none. With "
+                          "--checkpoint-every the bag is finished at each checkpoint and goes on in "
+                          "run-from-step-<n> parts (README: The run folder).")
 
 
 _ROS_NAME = r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"

@@ -186,11 +186,15 @@ class Simulation:
                      machines={name: m.get_state() for name, m in self.machines.items()},
                      soil=self.soil.get_state() if (soil and self.soil is not None) else None,
                      tool_wrench=self.tool_wrench.copy(),
-                     control=Control.from_dict(self.applied.to_dict()), rng=self.rng.bit_generator.state)
+                     control=Control.from_dict(self.applied.to_dict()), rng=self.rng.bit_generator.state,
+                     model=self.model.fingerprint)
 
     def set_state(self, state: State) -> None:
         """Put a State back; the simulation then goes on exactly as the one it was taken from."""
         # every check before anything is set: a refused state leaves the simulation as it was
+        if state.model is not None and state.model != self.model.fingerprint:
+            raise ValueError(f"the state was taken from another model (another scene, grain size or step: model "
+                             f"{state.model}, this one {self.model.fingerprint})")
         if set(state.machines) != set(self.machines):
             raise ValueError(f"the state's machines {sorted(state.machines)} are not this model's "
                              f"{sorted(self.machines)}")
@@ -198,6 +202,13 @@ class Simulation:
             if list(ms.joints) != self.machines[name].joint_names:
                 raise ValueError(f"machine {name}: the state's joints {list(ms.joints)} are not this machine's "
                                  f"{self.machines[name].joint_names}")
+            for key in ("q", "qd", "effort", "q_target", "qd_target", "velocity_mode", "speed_cmd"):
+                if np.shape(getattr(ms, key)) != (len(ms.joints),):
+                    raise ValueError(f"machine {name}: the state's {key} has shape {np.shape(getattr(ms, key))}, "
+                                     f"expected ({len(ms.joints)},), one value per joint")
+        if np.size(state.tool_wrench) != self.tool_wrench.size:
+            raise ValueError(f"the state's tool_wrench has shape {np.shape(state.tool_wrench)}, expected "
+                             f"{self.tool_wrench.shape}, a row per tool")
         if self.soil is not None and state.soil is None:
             raise ValueError("the state carries no soil arrays (taken with get_state(soil=False))")
         if self.soil is not None:
@@ -340,7 +351,7 @@ def load_checkpoint(path, model: Model, soil) -> tuple[State, dict]:
                   machines={k: MachineState.from_arrays(v) for k, v in machines.items()},
                   soil=soil_arrays or None, tool_wrench=tool_wrench,
                   control=None if header.get("control") is None else Control.from_dict(header["control"]),
-                  rng=_rng_state(header.get("rng")))
+                  rng=_rng_state(header.get("rng")), model=header.get("model"))
     return state, header.get("extra") or {}
 
 

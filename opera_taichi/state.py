@@ -73,6 +73,7 @@ class State:
     # over the last step, world frame, torque about the link origin: applied to the machines in the next step
     control: Control | None = None             # the last control applied
     rng: dict | None = None                    # numpy bit generator state of sim.rng
+    model: str | None = None                   # the fingerprint of the model it was taken from (None: not known)
 
     def copy(self) -> "State":
         import copy

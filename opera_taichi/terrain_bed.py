@@ -35,11 +35,16 @@ def terrain_beds(soil, grid) -> tuple[list, tuple]:
             hi = (min(gx[hole].max() + cell / 2, bed.max[0]), min(gy[hole].max() + cell / 2, bed.max[1]))
             raise UserError(f"soil.terrain.file: {t.file.name} does not cover soil.bed.{i}: no scan points in "
                             f"{int(hole.sum())} of its {int(inside.sum())} cells, within x {lo[0]:.3g}..{hi[0]:.3g}, "
-                            f"y {lo[1]:.3g}..{hi[1]:.3g} m (world frame); check soil.terrain's placement or the bed")
+                            f"y {lo[1]:.3g}..{hi[1]:.3g} m (world frame); check soil.terrain's placement or the bed, "
+                            f"or, for a scan sparser than soil.heightmap_cell ({cell:g} m), a larger cell")
         floor = float(np.min(z[inside])) - float(t.depth)
         if floor < soil.domain.min[2]:
             raise UserError(f"soil.terrain.depth: soil.bed.{i}'s floor, {t.depth:g} m below its lowest scanned point, "
                             f"is at z = {floor:.3g} m, below soil.domain.min z = {soil.domain.min[2]:g}")
+        if floor >= bed.max[2]:
+            raise UserError(f"soil.terrain: soil.bed.{i}'s floor, soil.terrain.depth {t.depth:g} m below its lowest "
+                            f"scanned point, is at z = {floor:.3g} m, not below the bed's top soil.bed.{i}.max z = "
+                            f"{bed.max[2]:g}: lower the scan (soil.terrain.xyz) or raise soil.bed.{i}.max")
         top = float(np.max(z[inside]))
         if top > soil.domain.max[2] - 0.1:
             raise UserError(f"soil.terrain.file: the scanned surface over soil.bed.{i} reaches z = {top:.3g} m, at "

@@ -1,25 +1,24 @@
 """Checkpoint and resume: a run killed with SIGKILL mid-run and resumed from its run folder ends with the same
-final state, bit for bit, as the same run left alone, and its CSVs have no duplicate or missing rows.
+final state, bit for bit, as the same run left alone, and its CSVs and its bag have no duplicate or missing rows.
 
 The excavation scene at a coarse setting (12 cm grains, the dig path compressed into 3.5 s so the bucket is in the
 soil for most of it)."""
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import kill_after_first_checkpoint
 from opera_taichi.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = ROOT / "scenes" / "zx120_excavation.yaml"
 COARSE = ["--set", "soil.overrides.radius=0.12", "--set", "sim.duration=3.5", "--set", "output.plots=false",
-          "--set", "output.particles_final=true"]
+          "--set", "output.particles_final=true", "--set", "output.bag=mcap"]
 for _i, _t in enumerate((0.0, 0.5, 1.2, 2.5, 3.0, 3.5)):
     COARSE += ["--set", f"motion.waypoints.{_i}.t={_t}"]
 FILES = ("joints.csv", "tool_wrench.csv", "soil_mass.csv")
@@ -41,17 +40,7 @@ def alone_and_resumed(tmp_path_factory):
     # left alone, without checkpoints: taking a checkpoint must not change the run either
     assert subprocess.run(_cli(*run, "--out", str(alone)), env=_env(), cwd=ROOT).returncode == 0
     proc = subprocess.Popen(_cli(*run, "--checkpoint-every", "0.5", "--out", str(killed)), env=_env(), cwd=ROOT)
-    deadline = time.monotonic() + 600
-    try:
-        # kill as soon as the first checkpoint (t = 0.5 s of 3.5) is on disk: 3 s of digging are left to resume
-        while not list((killed / "checkpoints").glob("step-*.ckpt.npz")):
-            assert proc.poll() is None, "the run ended before its first checkpoint"
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    assert proc.returncode == -signal.SIGKILL
+    kill_after_first_checkpoint(proc, killed)   # (t = 0.5 s of 3.5): 3 s of digging are left to resume
     before = json.loads((killed / "manifest.json").read_text())
     resumed = subprocess.run(_cli("run", "--resume", str(killed)), env=_env(), cwd=ROOT, capture_output=True,
                              text=True)
@@ -82,6 +71,38 @@ def test_resumed_csvs_have_no_duplicate_or_missing_rows(alone_and_resumed):
     assert np.allclose(np.diff(t), 0.01) and t[0] == 0.0 and t[-1] == pytest.approx(3.5)
     wrench = np.loadtxt(alone / "tool_wrench.csv", delimiter=",", skiprows=1, usecols=2)
     assert np.abs(wrench).max() > 1000.0  # the bucket did dig: a resume that lost the soil would show here
+
+
+def _bag_messages(paths):
+    from mcap.reader import make_reader
+
+    out = []
+    for path in paths:
+        with open(path, "rb") as fh:
+            for schema, channel, message in make_reader(fh).iter_messages(log_time_order=False):
+                out.append((channel.topic, message.log_time, message.sequence, bytes(message.data)))
+    return out
+
+
+def test_the_resumed_bag_holds_every_message_once(alone_and_resumed):
+    """The killed run's bag was finished at its checkpoint (an MCAP is unreadable until its writer finishes it); the
+    resume deleted the part the killed process had begun after it, and its own part continues exactly where the
+    checkpoint left off: the parts hold the messages of the run left alone, byte for byte, each once."""
+    from opera_taichi.ros.bag import bag_parts
+
+    alone, killed, _, _ = alone_and_resumed
+    assert bag_parts(alone) == [alone / "run.mcap"]
+    parts = bag_parts(killed)
+    assert len(parts) >= 2 and parts[0].name == "run.mcap"  # each checkpoint (every 0.5 s) begins a part
+    assert all(p.name.startswith("run-from-step-") for p in parts[1:])
+    expected = _bag_messages([alone / "run.mcap"])
+    assert len(expected) > 500
+    assert _bag_messages(parts) == expected
+    # compare reads a run's own bag whole, its parts included, as the joint log
+    from opera_taichi.studies.compare import read_joint_log
+
+    t, q = read_joint_log(killed / "run.mcap")
+    assert t[0] == 0.0 and t[-1] > 3.4 and "boom_joint" in q   # (the first part alone ends at 0.5 s)
 
 
 def test_resume_refuses_a_finished_run_and_a_foreign_folder(alone_and_resumed, tmp_path, capsys):

@@ -1,5 +1,6 @@
 """Control modes through the Python API: position targets, velocity targets, the emergency stop, and what the
 state records as applied."""
+import re
 from pathlib import Path
 
 import numpy as np
@@ -107,3 +108,40 @@ def test_the_applied_control_is_part_of_the_state(sim):
     assert state.machines["zx120"].q_target[swing] == 0.2
     sim.step(None)   # no command: the last ones stay
     assert sim.state.machines["zx120"].q_target[swing] == 0.2
+
+
+def test_a_machines_control_that_is_neither_a_machine_control_nor_a_dict_is_named(sim):
+    """{machine: value} or Control(machines={...}) with a value that is no MachineControl: one line naming the
+    machine (was an AttributeError or TypeError from inside); a {joint: rad} dict there is taken as targets."""
+    for control in ({"zx120": 0.5}, ot.Control(machines={"zx120": [0.1, 0.2]})):
+        with pytest.raises(UserError, match=r"control of machine 'zx120': expected a MachineControl or a \{joint: "):
+            sim.step(control)
+    sim.step(ot.Control(machines={"zx120": {"boom_joint": -0.45}}))
+    assert sim.applied.machines["zx120"].q_target["boom_joint"] == pytest.approx(-0.45)
+
+
+def test_set_state_refuses_a_state_that_does_not_fit_and_changes_nothing(sim):
+    """Arrays of another length, a wrench of another shape, a state of another model: refused before anything is
+    set (each was taken, and the next step failed or went on with another model's state)."""
+    _run(sim, 0.02, {"boom_joint": -0.5})
+    good = sim.get_state()
+    short = good.copy()
+    short.machines["zx120"].q = np.zeros(2)
+    wrench = good.copy()
+    wrench.tool_wrench = np.zeros((len(good.tool_wrench) + 2, 6))
+    foreign = good.copy()
+    foreign.model = "0" * 16
+    for state, words in [(short, "machine zx120: the state's q has shape (2,), expected (4,)"),
+                         (wrench, "the state's tool_wrench has shape"),
+                         (foreign, "the state was taken from another model")]:
+        with pytest.raises(ValueError, match=re.escape(words)):
+            sim.set_state(state)
+    after = sim.get_state()
+    assert after.t == good.t and np.array_equal(after.machines["zx120"].q, good.machines["zx120"].q)
+    other = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "sim.dt": 0.002})
+    try:
+        with pytest.raises(ValueError, match="another model"):
+            other.set_state(good)
+    finally:
+        other.close()
+    sim.set_state(good)   # its own state, as taken

@@ -119,6 +119,26 @@ def test_second_construction_loads_the_settled_bed_from_the_cache(tmp_path, monk
     assert not np.array_equal(other_seed.particles()["positions"][:10], a["positions"][:10])
 
 
+def test_a_bed_settled_on_another_backend_is_settled_again(tmp_path, monkeypatch):
+    """A settled bed's bits depend on the backend that settled it (the GPU's layout sums forces in another order):
+    a CPU run does not start from a bed a GPU run cached, or two runs of one scene on one machine would differ by
+    what ran before them."""
+    import opera_taichi.dem_soil as dem_soil
+
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    pit = ((-0.24, -0.24, -0.16), (0.24, 0.24, 0.0))
+    real = dem_soil.compiled_for
+    monkeypatch.setattr(dem_soil, "compiled_for", lambda: {**real(), "arch": "cuda"})
+    make_bed(pit, settle_time=0.3)
+    monkeypatch.setattr(dem_soil, "compiled_for", lambda: {**real(), "fast_math": True})
+    make_bed(pit, settle_time=0.3)
+    monkeypatch.setattr(dem_soil, "compiled_for", real)
+    make_bed(pit, settle_time=0.3)
+    assert len(list((tmp_path / "dem_beds").glob("*.npz"))) == 3
+    make_bed(pit, settle_time=0.3)  # this backend's bed is found again
+    assert len(list((tmp_path / "dem_beds").glob("*.npz"))) == 3
+
+
 def test_contact_springs_survive_neighbour_rebuilds():
     """A neighbour-list rebuild at every substep (a skin of ~0) must carry every spring over exactly: the
     loaded bed then evolves as with the usual skin (a lost tangential spring would let it creep)."""

@@ -185,6 +185,24 @@ def test_bad_arguments_are_refused():
         opera_taichi.ZX120DigEnv(max_episode_seconds=-1)
     with pytest.raises(ValueError, match="patch_cells, patch_cell"):
         opera_taichi.ZX120DigEnv(patch_cells=0)
+    for kw, words in [({"control_period": float("nan")}, "control_period: expected a finite number"),
+                      ({"max_episode_seconds": float("inf")}, "max_episode_seconds: expected a finite number"),
+                      ({"init_noise": -1.0}, "init_noise: expected a finite number >= 0"),
+                      ({"reward_fn": 3}, "reward_fn: expected a function"),
+                      ({"machine": "nope"}, "machine: no machine 'nope'")]:
+        with pytest.raises(ValueError, match=words):
+            opera_taichi.ZX120DigEnv(**kw)
+
+
+def test_bad_reset_options_and_actions_are_refused_in_one_line(env):
+    """A reset noise beyond what the swing's observation bound was sized for would show the agent a clipped swing."""
+    for noise in (40.0, -0.1, float("nan"), "abc"):
+        with pytest.raises(ValueError, match="reset options: init_noise: expected a number from 0 to 1 rad"):
+            env.reset(seed=0, options={"init_noise": noise})
+    env.reset(seed=0)
+    for action in (["a", "b", "c", "d"], {"boom_joint": 0.1}):
+        with pytest.raises(ValueError, match="action: expected 4 finite joint velocities"):
+            env.step(action)
 
 
 def test_an_action_of_another_shape_is_refused(env):

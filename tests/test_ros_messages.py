@@ -81,6 +81,11 @@ def test_validate_and_run_report_bridge_mistakes_in_one_line(capsys):
     assert "--ros-tcp: expected HOST:PORT" in capsys.readouterr().err
     assert main(["run", str(DIG_CYCLE), "--bridge-after-motion"]) == 2
     assert "--bridge-after-motion: only with a bridge" in capsys.readouterr().err
+    # what `run` refuses before it connects, `validate` refuses too
+    bad_port = ["--set", "bridge={kind: ros_tcp, address: '127.0.0.1:99999'}"]
+    assert main(["validate", str(DIG_CYCLE), *bad_port]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bridge.address: expected HOST:PORT" in err, err
 
 
 def test_ros_tcp_without_an_endpoint_is_a_one_line_error(tmp_path, capsys):
@@ -135,6 +140,68 @@ def test_a_peer_that_sends_no_frames_is_refused_before_anything_is_allocated(tmp
         peer.join(10)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("error: --ros-tcp: ") and "did not greet" in err[-1], err
+
+
+def test_a_handshake_that_is_no_endpoints_greeting_is_refused_in_one_line():
+    from opera_taichi.ros.transport_tcp import _greeting
+
+    assert _greeting(b'{"version": "v0.7.0", "metadata": "{\\"protocol\\": \\"ROS2\\"}"}\x00') == ("v0.7.0", "ROS2")
+    assert _greeting(b'{"version": "v0.7.0"}') == ("v0.7.0", "ROS1")   # the ROS 1 endpoint sends no metadata
+    for payload, words in [(b"[1]", "no JSON object"), (b'{"metadata": {"protocol": "ROS2"}}', "metadata is no"),
+                           (b'{"metadata": "[2]"}', "unknown protocol"), (b"\xff", "decode")]:
+        with pytest.raises(ValueError, match=words):
+            _greeting(payload)
+
+
+def _endpoint(server, protocol="ROS1"):
+    """Accept one client and greet it as a ROS-TCP-Endpoint; returns the connection."""
+    from opera_taichi.ros.transport_tcp import frame
+
+    conn, _ = server.accept()
+    conn.sendall(frame("__handshake", json.dumps({"version": "v0.7.0",
+                                                  "metadata": json.dumps({"protocol": protocol})}).encode()))
+    return conn
+
+
+def test_ros_tcp_input_survives_messages_it_cannot_read_and_stays_closed_once_closed():
+    """An endpoint's __error whose JSON is no object, then a command: the command arrives (the reader thread went on)
+    and the odd message is logged once. Then the endpoint drops the connection and the run closes the transport
+    while it waits to reconnect: it does not connect again."""
+    import socket
+    import threading
+
+    from opera_taichi.ros.transport_tcp import RosTcpTransport, frame
+
+    said, lost, got = [], threading.Event(), []
+    arrived = threading.Event()
+
+    def log(key, text):
+        said.append(text)
+        if key == ("tcp", "lost"):
+            lost.set()
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        accepted = []
+        greeter = threading.Thread(target=lambda: accepted.append(_endpoint(server)), daemon=True)
+        greeter.start()
+        transport = RosTcpTransport(f"127.0.0.1:{server.getsockname()[1]}", log)
+        greeter.join(10)
+        conn = accepted[0]
+        transport.subscribe("/zx120/boom/cmd", "com3_msgs/msg/JointCmd",
+                            lambda payload: (got.append(payload), arrived.set()))
+        conn.sendall(frame("__error", b"[1]") + frame("__warn", b'{"text": 5}') + frame("/zx120/boom/cmd", b"abc"))
+        assert arrived.wait(10) and got == [b"abc"]
+        assert said == ["ros-tcp endpoint error: [1]", "ros-tcp endpoint warn: 5"]
+        conn.shutdown(socket.SHUT_RDWR)
+        conn.close()
+        assert lost.wait(10)
+        transport.close()
+        assert not transport._reader.is_alive() and transport.sock is None
+        server.setblocking(False)
+        with pytest.raises(BlockingIOError):   # no connection came after the close
+            server.accept()
 
 
 def test_joint_cmd_is_operas_message():
@@ -487,3 +554,64 @@ def test_the_ros1_master_watch_says_a_gone_master_once_and_a_master_that_forgot_
     assert len({k for k, _ in said}) == len(said)        # each its own key: the bridge says each once
     assert [("stopped" in t, "answers again" in t, "does not know this node" in t) for t in texts][:5] == [
         (True, False, False), (False, True, False), (True, False, False), (False, False, True), (False, True, False)]
+
+
+def test_the_bridge_after_a_resume_a_stop_in_the_same_step_and_an_overflowing_twist():
+    """(1) a cmd_vel of huge finite numbers whose track speeds overflow: logged and ignored, not the run's end;
+    (2) a controller that takes over a machine already moving (a resumed run: the commands are gone) lets those
+    speeds expire as its own; (3) a target and a release of the stop arriving in the same step: the target, given
+    under the hold, does not act; (4) with --bridge-after-motion, a stop acts during the scene's motion."""
+    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    try:
+        log = _Log()
+        ctl = BridgeController(log, command_timeout=0.5)
+        ctl.bind(sim.model)
+        topics = _topics(sim)
+        T = typestore(2).types
+        V = T["geometry_msgs/msg/Vector3"]
+        ctl.handle(topics["tracks/cmd_vel"], T["geometry_msgs/msg/Twist"](linear=V(x=1e308, y=0, z=0),
+                                                                            angular=V(x=0, y=0, z=1e308)))
+        assert ctl.accepted == 0 and "give track speeds beyond any number" in log.lines[-1]
+        # a machine left moving by commands this controller never saw
+        arm = sim.machine.joint_names.index("arm_joint")
+        sim.step(ot.MachineControl(qd_target={"arm_joint": 0.2}, track_speeds=(0.4, 0.4)))
+        fresh = BridgeController(_Log(), command_timeout=0.5)
+        fresh.bind(sim.model)
+        while sim.t < 1.5:
+            sim.step(fresh.control(sim, sim.t_next))
+        q1, x1 = sim.machine.joint_states()[0][arm], sim.machine.base_pose()[0][0]
+        while sim.t < 2.0:
+            sim.step(fresh.control(sim, sim.t_next))
+        assert abs(sim.machine.joint_states()[0][arm] - q1) < 0.005 and abs(sim.machine.base_pose()[0][0] - x1) < 0.01
+        # under the hold: a boom target, then the release, both due in the same step
+        boom = sim.machine.joint_names.index("boom_joint")
+        fresh.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=True))
+        for _ in range(10):
+            sim.step(fresh.control(sim, sim.t_next))
+        held = sim.machine.joint_states()[0][boom]
+        fresh.handle(topics["boom/cmd"], _msg("std_msgs/msg/Float64", data=held + 0.3))
+        fresh.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=False))
+        for _ in range(250):
+            sim.step(fresh.control(sim, sim.t_next))
+        assert sim.machine.joint_states()[0][boom] == pytest.approx(held, abs=0.01)
+        # a release sent again (the machine no longer held) with a command in the same step: the command acts
+        fresh.handle(topics["boom/cmd"], _msg("std_msgs/msg/Float64", data=held + 0.3))
+        fresh.handle(topics["emg_stop"], _msg("std_msgs/msg/Bool", data=False))
+        for _ in range(250):
+            sim.step(fresh.control(sim, sim.t_next))
+        assert sim.machine.joint_states()[0][boom] > held + 0.1
+    finally:
+        sim.close()
+    scripted = ot.Simulation.from_scene(DIG_CYCLE)
+    try:
+        ctl = BridgeController(_Log(), after_motion=True)
+        ctl.bind(scripted.model)
+        ctl.handle(_topics(scripted)["emg_stop"], _msg("std_msgs/msg/Bool", data=True))
+        for _ in range(500):
+            scripted.step(ctl.control(scripted, scripted.t_next))
+        q_held = scripted.machine.joint_states()[0].copy()
+        for _ in range(500):   # the script goes on moving its targets; the held machine does not follow
+            scripted.step(ctl.control(scripted, scripted.t_next))
+        assert scripted.machine.held and np.max(np.abs(scripted.machine.joint_states()[0] - q_held)) < 0.005
+    finally:
+        scripted.close()

@@ -196,3 +196,60 @@ def test_a_tool_that_starts_inside_the_soil_is_named_as_the_likely_cause(tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "soil.max_speed" in err[0] and "starts inside the soil" in err[0], err
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["status"] == "diverged"
+
+
+def test_a_refused_resume_leaves_the_run_folder_as_it_was(tmp_path, capsys):
+    """The newest checkpoint is of another scene: the resume is refused in one line, and the interrupted run's
+    record (its manifest's status, message and time) is what it was: nothing in the folder changed."""
+    import numpy as np
+
+    import opera_taichi as ot
+    from opera_taichi.errors import UserError
+    from opera_taichi.observers import latest_checkpoint
+    from opera_taichi.scene import load_scene
+
+    def driver(sim, t):
+        if t > 0.3:
+            raise KeyboardInterrupt
+        return {"boom_joint": -0.8 + 0.1 * t}
+
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        ot.run_scene(load_scene(DIG, ["sim.duration=0.5", "output.plots=false"]), out_dir=out, quiet=True,
+                     controller=ot.CallableController(driver), checkpoint_every=0.1)
+    ckpt = latest_checkpoint(out)
+    with np.load(ckpt) as f:
+        arrays = {k: f[k] for k in f.files}
+    header = json.loads(str(arrays["header"]))
+    header["model"] = "0" * len(str(header["model"]))  # as a checkpoint of another scene reads
+    arrays["header"] = np.array(json.dumps(header))
+    with open(ckpt, "wb") as fh:
+        np.savez(fh, **arrays)
+    before = {p: data for p, (_, data) in _snapshot(out).items()}
+    steady = ot.CallableController(lambda sim, t: {"boom_joint": -0.8 + 0.1 * min(t, 0.3)})
+    with pytest.raises(UserError, match="another scene"):
+        ot.run_scene(load_scene(DIG, ["sim.duration=0.5", "output.plots=false"]), out_dir=out, quiet=True,
+                     controller=steady, resume=True)
+    assert {p: data for p, (_, data) in _snapshot(out).items()} == before   # (the manifest was "running" meanwhile)
+    assert json.loads((out / "manifest.json").read_text())["status"] == "interrupted"
+
+
+def test_runs_lists_damaged_and_odd_folders_with_a_true_status(tmp_path, capsys):
+    """A summary.json of something else, a start time that is a number, pids no process has: every folder is listed
+    (one bad folder used to cost the whole listing a traceback) and a run whose pid cannot be alive reads died."""
+    from opera_taichi.runs import list_runs
+
+    for name, pid in (("huge", 99_999_999_999_999), ("minus", -1), ("zero", 0)):
+        _fake_run(tmp_path / name, pid)
+    (tmp_path / "huge" / "summary.json").write_text("[1]")
+    (tmp_path / "minus" / "summary.json").write_text('{"tools": [1, 2]}')
+    (tmp_path / "zero" / "summary.json").write_text('{"tools": {"bucket": 3}}')
+    record = json.loads((tmp_path / "zero" / "manifest.json").read_text())
+    (tmp_path / "zero" / "manifest.json").write_text(json.dumps({**record, "started": 5}))
+    _fake_run(tmp_path / "iso", os.getpid())
+    record = json.loads((tmp_path / "iso" / "manifest.json").read_text())
+    (tmp_path / "iso" / "manifest.json").write_text(json.dumps({**record, "started": "2026-11-27T06:00:00"}))
+    rows = {r["name"]: r for r in list_runs(tmp_path)}
+    assert {n: rows[n]["status"] for n in rows} == {"huge": "died", "minus": "died", "zero": "died", "iso": "running"}
+    assert main(["runs", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.count("died") == 3

@@ -17,7 +17,7 @@ def test_the_site_digs_and_the_far_bed_is_untouched(tmp_path):
     assert main(["run", str(ROOT / "scenes" / "zx120_site.yaml"), "--out", str(out), "--quiet",
                  "--set", "soil.overrides.radius=0.12", "--set", "output.plots=false"]) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["mass_balance"]["relative_drift"] == 0.0
+    assert abs(summary["mass_balance"]["relative_drift"]) <= 1e-12   # (the sum's round-off as grains reorder)
     assert summary["tools"]["bucket_link"]["soil_held_kg"] > 50.0
     assert summary["terrain"]["dug_m3"] > 0.5 and 3.0 < summary["terrain"]["deepest_cut_xy_m"][0] < 8.0
     before, after = np.load(out / "terrain_initial.npz"), np.load(out / "terrain_final.npz")

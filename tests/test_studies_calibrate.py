@@ -15,6 +15,7 @@ import pytest
 pytest.importorskip("dask.distributed")
 pytest.importorskip("optuna")
 
+from conftest import a_file_a_run_folder_and  # noqa: E402
 from opera_taichi.cli import main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,3 +182,15 @@ def test_a_journal_without_a_record_of_its_objective_is_not_resumed(tmp_path, ca
     err = capsys.readouterr().err
     assert "holds 1 trial(s) with no record of what they were scored against" in err
     assert not (tmp_path / "out" / "soil_preset.yaml").exists()
+
+
+def test_a_calibration_writes_only_into_a_folder_of_its_own(tmp_path, capsys, no_trials):
+    """--out a file or a run folder (or inside one): one line, exit 2, before the first trial, nothing touched."""
+    path = _calibration(tmp_path, "fit", COHESION)
+    cases, _ = a_file_a_run_folder_and(tmp_path, "study", "study.json", '{"name": "fit"}')
+    for out, words in cases:
+        before = sorted(p.name for p in tmp_path.rglob("*"))
+        assert main(["calibrate", str(path), "--workers", "1", "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"out: {out} {words}" in err and "\n" not in err, err
+        assert sorted(p.name for p in tmp_path.rglob("*")) == before

@@ -247,6 +247,27 @@ def test_run_against_itself_is_zero_and_joint_log_lag_and_rate(tmp_path):
     assert late["joints_rmse_rad"] > 0.05
 
 
+def test_a_run_killed_while_it_wrote_joints_csv_compares_on_its_whole_rows(tmp_path, capsys):
+    """A run killed mid-row leaves joints.csv cut short: compared on its whole rows (the cut row left out); an empty
+    or header-only joints.csv is one line, exit 2 (both were tracebacks)."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    with open(tmp_path / "log.csv", "w") as fh:
+        fh.write("t,boom_joint,arm_joint\n")
+        for ti in np.arange(0.0, 20.0, 0.02):
+            fh.write(f"{ti:.3f},{0.4 * math.sin(0.5 * ti):.6f},{1.0 + 0.3 * math.cos(0.4 * ti):.6f}\n")
+    text = (run / "joints.csv").read_text()
+    cut = text.index("\n", len(text) // 2) + 8   # a few characters into a row
+    (run / "joints.csv").write_text(text[:cut])
+    res = cmp.compare(run, joints=tmp_path / "log.csv", out=tmp_path / "cmp")
+    assert res["joints_rmse_rad"] < 1e-3
+    for content, words in [("", "empty"), (text[:text.index("\n") + 1], "fewer than two rows of joint angles")]:
+        (run / "joints.csv").write_text(content)
+        code, err = _cli([run, "--joints", tmp_path / "log.csv", "--out", tmp_path / "cmp2"], capsys)
+        assert code == 2 and words in err and "\n" not in err, err
+
+
 def _cli(args, capsys):
     code = main(["compare", *map(str, args)])
     err = capsys.readouterr().err.strip()
@@ -635,3 +656,72 @@ def test_a_run_whose_machine_cannot_be_read_falls_back_to_the_range_check_and_sa
     code, err = _cli([run, "--joints", tmp_path / "rad.csv", "--out", tmp_path / "c"], capsys)
     assert code == 2 and "warning: RUN_DIR: the run's machine description cannot be read" in err
     assert "zx120.urdf does not exist" in err and "a log in degrees? name its column swing_joint_deg" in err
+
+
+def test_the_fitted_placement_does_not_depend_on_the_order_of_the_points(tmp_path):
+    """A scan larger than the fit's subset: its points shuffled, the same transform to the bit (the subset was
+    drawn by index, so the file's order chose the points)."""
+    run = make_run(tmp_path / "run")
+    pts = scan_points(after=True, seed=3)
+    assert len(pts) > scans.MAX_FIT_POINTS
+    np.savetxt(tmp_path / "after.xyz", pts, fmt="%.6f")
+    np.savetxt(tmp_path / "shuffled.xyz", pts[np.random.default_rng(0).permutation(len(pts))], fmt="%.6f")
+    a, b = (cmp.compare(run, terrain=tmp_path / name, fit="auto", out=tmp_path / name[:-4], figures=False)
+            for name in ("after.xyz", "shuffled.xyz"))
+    assert a["transform"] == b["transform"]
+
+
+def test_nodata_and_units_as_gis_tools_write_them(tmp_path):
+    """A float32 GeoTIFF's nodata written as -9999.9 (no float32 holds it) or as the float's maximum (ArcGIS) is no
+    height; units declared only through the coordinate system's EPSG code (a GeoTIFF's projected CRS, a LAS file's
+    GeoKeyDirectory with a vertical units key) are read, so a scan in feet is refused, not taken as metres."""
+    from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct
+
+    from opera_taichi.errors import UserError
+
+    z = np.full((6, 8), 1.5, np.float32)
+    z[:2, :3] = 0.0
+    place = [(33550, "d", 3, (0.1, 0.1, 0.0)), (33922, "d", 6, (0.0, 0.0, 0.0, 100.0, 200.0, 0.0))]
+    # a Leica PTS file: its point count on the first line, then x y z intensity r g b
+    (tmp_path / "scan.pts").write_text("3\n0 0 1.5 100 1 2 3\n1 0 1.5 100 1 2 3\n0 1 1.5 100 1 2 3\n")
+    assert scans.read_scan(tmp_path / "scan.pts").points.tolist() == [[0, 0, 1.5], [1, 0, 1.5], [0, 1, 1.5]]
+    for nodata in ("-9999.9", "-3.40282346639e+038"):
+        z[:2, :3] = np.float32(float(nodata))
+        tifffile.imwrite(str(tmp_path / "nodata.tif"), z, extratags=place + [(42113, "s", 0, nodata)])
+        scan = scans.read_scan(tmp_path / "nodata.tif")
+        assert len(scan.points) == 48 - 6 and np.all(scan.points[:, 2] == 1.5), nodata
+    # an integer raster whose nodata no int16 holds: a height of 0 stays a height
+    heights = np.full((6, 8), 7, np.int16)
+    heights[0, 0] = 0
+    tifffile.imwrite(str(tmp_path / "int.tif"), heights, extratags=place + [(42113, "s", 0, "-3.4e38")])
+    assert len(scans.read_scan(tmp_path / "int.tif").points) == 48
+    for geokeys, words in [((3072, 2229), "us survey foot"), ((3072, 32654), None)]:
+        keys = (1, 1, 0, 2, 1024, 0, 1, 1, *geokeys[:1], 0, 1, geokeys[1])
+        tifffile.imwrite(str(tmp_path / "crs.tif"), z, extratags=place + [(34735, "H", len(keys), keys)])
+        if words is None:
+            assert scans.read_scan(tmp_path / "crs.tif").units == "m"
+        else:
+            with pytest.raises(UserError, match=f"declares its units as {words}"):
+                scans.read_scan(tmp_path / "crs.tif")
+    pts = scan_points(after=True, density=20)
+    for keys, words in [([(1024, 1), (3072, 32654), (4099, 9002)], "foot"), ([(1024, 1), (3072, 32654)], None)]:
+        header = laspy.LasHeader(point_format=3, version="1.2")
+        header.offsets, header.scales = pts.min(axis=0), [0.001] * 3
+        vlr = GeoKeyDirectoryVlr()
+        vlr.geo_keys_header.key_directory_version, vlr.geo_keys_header.key_revision = 1, 1
+        vlr.geo_keys_header.number_of_keys = len(keys)
+        entries = []
+        for key, value in keys:
+            entry = GeoKeyEntryStruct()
+            entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = key, 0, 1, value
+            entries.append(entry)
+        vlr.geo_keys = entries
+        header.vlrs.append(vlr)
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+        las.write(str(tmp_path / "keys.las"))
+        if words is None:
+            assert scans.read_scan(tmp_path / "keys.las").units == "m"
+        else:
+            with pytest.raises(UserError, match=f"declares its units as {words}"):
+                scans.read_scan(tmp_path / "keys.las")

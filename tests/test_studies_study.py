@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import a_file_a_run_folder_and
 from opera_taichi.cli import main
 from opera_taichi.errors import UserError
 from opera_taichi.studies.study import load_study
@@ -116,9 +117,14 @@ def test_an_integer_key_with_bounds_that_are_not_integers_is_refused(tmp_path, c
     ("reference: {joints: scan.xyz, fit_transform: auto}", "reference: transform, fit_transform and terrain_before "
                                                            "place a scan of the terrain; give reference.terrain"),
     ("reference: {against: .}", "is not a run folder (no manifest.json)"),
+    # the files themselves, read before the runs (they were read only when the first run was measured)
+    ("reference: {joints: empty.csv}", "reference.joints: " + "{tmp}/empty.csv: empty; expected a header"),
+    ("reference: {terrain: empty.csv}", "reference.terrain: " + "{tmp}/empty.csv: holds 0 usable points"),
 ])
 def test_a_bad_reference_is_refused_before_any_run(tmp_path, capsys, extra, words):
     (tmp_path / "scan.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n")
+    (tmp_path / "empty.csv").write_text("")
+    words = words.replace("{tmp}", str(tmp_path))
     _refused(tmp_path, capsys, "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
                                f"metrics: [compare.terrain_rmse_m]\n{extra}\n", words)
 
@@ -233,3 +239,17 @@ def test_a_metric_the_run_has_no_value_for_is_an_error_not_an_empty_cell(tmp_pat
     assert set(errors) == {"summary.tools.bucket.soil_held_kg", "manifest.nonexistent", "late"}
     assert "summary.json has no 'tools.bucket.soil_held_kg'" in str(errors["summary.tools.bucket.soil_held_kg"])
     assert "no fx samples" in str(errors["late"])
+
+
+def test_a_study_writes_only_into_a_folder_of_its_own(tmp_path, capsys):
+    """--out a file, a run folder or another study's folder: refused in one line before any run, nothing in that
+    folder touched (a second study's points and tables went in among the first's)."""
+    path = tmp_path / "s.yaml"
+    path.write_text(BASE + "name: mine\nparameters: {soil.overrides.friction_angle_deg: [30, 35]}\n")
+    cases, other = a_file_a_run_folder_and(tmp_path, "other", "study.json", '{"name": "theirs"}')
+    for out, words in cases + [(other, "holds study 'theirs', not 'mine'")]:
+        before = sorted(p.name for p in tmp_path.rglob("*"))
+        assert main(["study", str(path), "--out", str(out), "--workers", "1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"out: {out} {words}" in err and "\n" not in err, err
+        assert sorted(p.name for p in tmp_path.rglob("*")) == before

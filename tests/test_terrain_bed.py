@@ -66,3 +66,14 @@ def test_scan_that_misses_the_bed_is_one_line(tmp_path, capsys):
     assert main(["validate", str(tmp_path / "scene.yaml")]) == 2
     err = capsys.readouterr().err.strip()
     assert "short.npz does not cover soil.bed.0" in err and "x 0.82..1, y -0.4..0.4 m" in err and "\n" not in err
+
+
+def test_a_scan_placed_above_the_beds_top_is_one_line(tmp_path, capsys):
+    """The scan lifted so far that the bed's floor (depth below its lowest point) lies above the bed's top: one line
+    naming soil.terrain and the bed (was pydantic's error about a Box, exit 1)."""
+    write_scan(tmp_path / "scan.npz")
+    lifted = (-SHIFT + [0.0, 0.0, 1.0]).tolist()
+    (tmp_path / "scene.yaml").write_text(scene_text(tmp_path / "scan.npz").replace(str((-SHIFT).tolist()), str(lifted)))
+    assert main(["validate", str(tmp_path / "scene.yaml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "soil.terrain: soil.bed.0's floor" in err and "soil.bed.0.max z = 0" in err and "\n" not in err, err

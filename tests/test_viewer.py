@@ -131,6 +131,8 @@ def test_teleop_sliders_command_the_machine_and_pause_holds_the_loop():
         ctrl = controller.control(sim, sim.t_next)
         assert ctrl.source == "teleop"
         assert ctrl.machines["zx120"].q_target["boom_joint"] == pytest.approx(target)
+        view.sliders[("zx120", "boom_joint")].value = float("nan")   # what a browser may send: the last good
+        assert controller.control(sim, sim.t_next).machines["zx120"].q_target["boom_joint"] == pytest.approx(target)
         for _ in range(400):                                        # 0.4 s: the boom follows the slider
             sim.step(controller.control(sim, sim.t_next))
         assert sim.machine.joint_states()[0][boom] > q0 + 0.05
@@ -185,6 +187,13 @@ def test_view_refuses_what_is_not_a_recorded_run(run, tmp_path, capsys):
     no_replay = tmp_path / "no_replay"
     shutil.copytree(run, no_replay)
     (no_replay / REPLAY_FILE).unlink()
+    _one_line_exit_2(capsys, ["view", str(no_replay)], f"has no {REPLAY_FILE}, which its run recorded")
+    record = json.loads((no_replay / "manifest.json").read_text())
+    record["status"] = "interrupted"    # Ctrl-C while it set up: no frame yet
+    (no_replay / "manifest.json").write_text(json.dumps(record))
+    _one_line_exit_2(capsys, ["view", str(no_replay)], "stopped (status interrupted) before its first replay frame")
+    record["scene"]["output"]["replay"] = False
+    (no_replay / "manifest.json").write_text(json.dumps(record))
     _one_line_exit_2(capsys, ["view", str(no_replay)], "recorded without a replay", "--replay")
     bad = tmp_path / "bad_replay"
     shutil.copytree(run, bad)
@@ -215,3 +224,26 @@ def test_a_port_in_use_is_one_line_exit_2(run, capsys, tmp_path):
     _one_line_exit_2(capsys, ["view", str(run), "--port", "70000"], "not a TCP port")
     _one_line_exit_2(capsys, ["view", str(run), "--host", "192.0.2.1"], "--host: 192.0.2.1 is not an address of "
                      "this machine")   # TEST-NET-1: documentation only, never a local address
+
+
+def test_a_scene_with_only_a_tool_is_shown_and_an_unwritable_video_is_one_line(tmp_path, capsys):
+    """The blade scene has no machine: its view has no joints to plot (the panel's plot was refused by viser and
+    the run ended in a traceback). An MP4 whose folder is a file: one line, exit 2 (was a traceback)."""
+    from opera_taichi.viewer.live import start_server
+    from opera_taichi.viewer.view import SceneView
+
+    out = tmp_path / "blade"
+    assert cli.main(["run", str(ROOT / "scenes" / "blade_cut.yaml"), "--out", str(out), "--quiet", "--replay",
+                     "--set", "soil.overrides.radius=0.08", "--set", "sim.duration=0.2",
+                     "--set", "output.plots=false"]) == 0
+    capsys.readouterr()   # (Taichi's banner, where this test started it)
+    server = start_server("127.0.0.1", free_port())
+    try:
+        reader = open_run(out)
+        view = SceneView(server, reader.info)
+        view.show(reader.frame(len(reader) - 1))
+        assert view.joint_plot is None
+    finally:
+        server.stop()
+    (tmp_path / "afile").write_text("")
+    _one_line_exit_2(capsys, ["view", str(out), "--mp4", str(tmp_path / "afile" / "x.mp4")], "--mp4: cannot write")

@@ -32,6 +32,7 @@ class BridgeController:
         self._machines: dict = {}
         self._script = None
         self.motion_end = 0.0
+        self._seeded = False             # the speeds the machines follow at the first step are known
 
     def bind(self, model) -> None:
         """Learn the machines (joints, dead time, tracks) and, with after_motion, the scripts to run first."""
@@ -51,7 +52,7 @@ class BridgeController:
         mc = self._decode(topic, msg)
         if mc is None:
             return
-        if self._script is not None and self.now < self.motion_end:
+        if self._script is not None and self.now < self.motion_end and mc.hold is None:  # (a stop acts at once)
             self._log(("during-motion",), f"{topic.name}: commands are ignored until the scene's motion ends at "
                                           f"t = {self.motion_end:g} s (--bridge-after-motion)")
             return
@@ -79,7 +80,11 @@ class BridgeController:
                 self._bad(topic, "nan", f"linear.x {v} / angular.z {w} is not a finite number")
                 return None
             half = 0.5 * self._machines[topic.machine]["gauge"]
-            return MachineControl(track_speeds=(v - w * half, v + w * half))
+            left, right = v - w * half, v + w * half
+            if not (math.isfinite(left) and math.isfinite(right)):
+                self._bad(topic, "nan", f"linear.x {v} / angular.z {w} give track speeds beyond any number")
+                return None
+            return MachineControl(track_speeds=(left, right))
         if kind == "com3_msgs/msg/JointCmd":
             return self._joint_cmd(topic, msg)
         raise ValueError(f"no command decoder for {kind}")
@@ -114,14 +119,31 @@ class BridgeController:
     # ------------------------------------------------------------------------------------------ simulation thread
     def control(self, sim, t: float) -> Control:
         self.now = sim.t
-        if self._script is not None and t <= self.motion_end + 1e-12:
-            return self._script.control(sim, t)
+        if not self._seeded:
+            self._seed_speeds(sim)
         with self._lock:
             due = [p for p in self._pending if p[0] <= t + 1e-12]
             if due:
                 self._pending = [p for p in self._pending if p[0] > t + 1e-12]
+        if self._script is not None and t <= self.motion_end + 1e-12:
+            scripted = self._script.control(sim, t)
+            for _, name, mc in due:  # (only emergency stops are queued while the motion runs)
+                scripted.machines.setdefault(name, MachineControl()).hold = mc.hold
+            return scripted
         merged: dict[str, MachineControl] = {}
+        held = {name: m.held for name, m in sim.machines.items()}
         for _, name, mc in due:     # in arrival order: the latest command of a joint wins
+            if mc.hold is True:  # a stop ends what came before it in this step (the machine applies it first)
+                merged[name] = MachineControl(hold=True)
+                held[name] = True
+                self._speeds = {k: v for k, v in self._speeds.items() if k[0] != name}
+                continue
+            if mc.hold is False:  # a release: what came under the hold was dropped below, what follows acts
+                merged.setdefault(name, MachineControl()).hold = False
+                held[name] = False
+                continue
+            if held.get(name):
+                continue            # given while the machine is held: ignored
             out = merged.setdefault(name, MachineControl())
             for j, v in mc.q_target.items():
                 out.qd_target.pop(j, None)
@@ -134,11 +156,23 @@ class BridgeController:
             if mc.track_speeds is not None:
                 out.track_speeds = mc.track_speeds
                 self._moving((name, None), any(v != 0.0 for v in mc.track_speeds), t)
-            if mc.hold is not None:
-                out.hold = mc.hold
         if self.command_timeout is not None:
             self._expire(merged, t)
         return Control(merged, t, self.source)
+
+    def _seed_speeds(self, sim) -> None:
+        """The speeds the machines already follow when this controller takes over (a run resumed from a checkpoint:
+        the commands that set them are gone) expire as a command just given would."""
+        self._seeded = True
+        state = sim.get_state(soil=False)
+        for name, ms in state.machines.items():
+            if name not in self._machines or ms.hold:
+                continue
+            for j, moving, qd in zip(ms.joints, ms.velocity_mode, ms.qd_target):
+                if moving and qd != 0.0:
+                    self._speeds[(name, j)] = sim.t
+            if any(v != 0.0 for v in ms.track_speeds):
+                self._speeds[(name, None)] = sim.t
 
     def _moving(self, key: tuple, moving: bool, t: float) -> None:
         if moving:

@@ -68,6 +68,13 @@ class MessageBuilder:
         self.T = self.store.types
         self._seq: dict[str, int] = {}
 
+    def get_state(self) -> dict:
+        """The ROS 1 header seq of each topic, so that a resumed run's messages go on counting."""
+        return dict(self._seq)
+
+    def set_state(self, state: dict) -> None:
+        self._seq.update({str(k): int(v) for k, v in state.items()})
+
     def serialize(self, msg, typename: str) -> bytes:
         return serialize(self.store, self.ros_version, msg, typename)
 

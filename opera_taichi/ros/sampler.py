@@ -28,6 +28,16 @@ class Sampler:
         self._planes = None
         self._density = float(sim.model.soil.bulk.density) if sim.model.soil is not None else None
 
+    def get_state(self) -> dict:
+        """When each topic is next due: a resumed run samples at the steps the run left alone would have."""
+        return {"next": list(self._next)}
+
+    def set_state(self, state: dict) -> None:
+        nxt = state.get("next")
+        if isinstance(nxt, list) and len(nxt) == len(self._next):
+            self._next = [float(v) for v in nxt]
+            self._next_any = min(self._next) if self._next else 0.0
+
     def due(self, t: float) -> bool:
         return t + 1e-9 >= self._next_any
 

@@ -69,11 +69,28 @@ def read_frame(sock: socket.socket) -> tuple[str, bytes]:
     return destination, _recv_exact(sock, m)
 
 
+def _greeting(payload: bytes) -> tuple[str | None, str]:
+    """(version, protocol) of the endpoint's __handshake JSON; ValueError for anything else."""
+    hello = json.loads(payload.decode("utf-8").rstrip("\x00"))
+    if not isinstance(hello, dict):
+        raise ValueError("a handshake that is no JSON object")
+    metadata = hello.get("metadata") or "{}"
+    if not isinstance(metadata, str):
+        raise ValueError("a handshake whose metadata is no JSON text")
+    meta = json.loads(metadata)
+    protocol = meta.get("protocol", "ROS1") if isinstance(meta, dict) else None
+    if protocol not in ("ROS1", "ROS2"):
+        raise ValueError(f"unknown protocol {protocol!r}")
+    version = hello.get("version")
+    return (str(version) if version is not None else None), protocol
+
+
 class RosTcpTransport:
     def __init__(self, address: str, log, *, connect_timeout: float = 10.0):
         self.host, self.port = parse_address(address)
         self._log = log
         self._send_lock = threading.Lock()
+        self._sock_lock = threading.Lock()
         self._closing = threading.Event()
         self._subs: dict[str, tuple[str, object]] = {}
         self._pubs: dict[str, str] = {}
@@ -101,10 +118,7 @@ class RosTcpTransport:
             destination, payload = read_frame(sock)
             if destination != "__handshake":
                 raise ValueError(f"the first message was {destination!r}, not __handshake")
-            hello = json.loads(payload.decode("utf-8").rstrip("\x00"))
-            protocol = json.loads(hello.get("metadata") or "{}").get("protocol", "ROS1")
-            if protocol not in ("ROS1", "ROS2"):
-                raise ValueError(f"unknown protocol {protocol!r}")
+            version, protocol = _greeting(payload)
         except (OSError, ValueError, ConnectionError) as exc:
             sock.close()
             if first:
@@ -115,11 +129,15 @@ class RosTcpTransport:
             raise ConnectionError(f"the endpoint at {where} now speaks {protocol}, not {self.protocol}")
         sock.settimeout(None)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.version, self.protocol = hello.get("version"), protocol
-        self.sock = sock
-        for topic, (typename, _) in self._subs.items():
+        with self._sock_lock:  # (close() may have run meanwhile: then this connection is not kept)
+            if self._closing.is_set():
+                sock.close()
+                raise ConnectionError("closing")
+            self.version, self.protocol = version, protocol
+            self.sock = sock
+        for topic, (typename, _) in list(self._subs.items()):  # (copies: the main thread may be adding topics)
             self._command("__subscribe", {"topic": topic, "message_name": typename.replace("/msg/", "/")})
-        for topic, typename in self._pubs.items():
+        for topic, typename in list(self._pubs.items()):
             self._command("__publish", {"topic": topic, "message_name": typename.replace("/msg/", "/"),
                                         "queue_size": 10, "latch": False})
 
@@ -153,24 +171,31 @@ class RosTcpTransport:
                     sock.close()
                     self._log(("tcp", "lost"), f"ros-tcp: lost the endpoint at {self.host}:{self.port} ({exc}); "
                                                f"reconnecting every {RECONNECT_INTERVAL:g} s")
-                self._closing.wait(RECONNECT_INTERVAL)
+                if self._closing.wait(RECONNECT_INTERVAL):
+                    return
                 try:
                     self._connect(HANDSHAKE_TIMEOUT)
                     print(f"ros-tcp: reconnected to {self.host}:{self.port}", file=sys.stderr)
                 except (OSError, ConnectionError):
                     pass
                 continue
-            if destination.startswith("__"):
-                self._system(destination, payload)
-            elif destination:
-                sub = self._subs.get(destination)
-                if sub is not None:
-                    sub[1](payload)
+            try:
+                if destination.startswith("__"):
+                    self._system(destination, payload)
+                elif destination:
+                    sub = self._subs.get(destination)
+                    if sub is not None:
+                        sub[1](payload)
+            except Exception as exc:  # noqa: BLE001 - a message this client cannot take must not end its input
+                self._log(("tcp", "unreadable", destination[:80]),
+                          f"ros-tcp: ignored a message to {destination[:80]!r} that could not be read "
+                          f"({type(exc).__name__}: {exc})")
 
     def _system(self, destination: str, payload: bytes) -> None:
         if destination in ("__error", "__warn", "__log"):
             try:
-                text = json.loads(payload.decode("utf-8").rstrip("\x00")).get("text", "")
+                said = json.loads(payload.decode("utf-8").rstrip("\x00"))
+                text = str(said.get("text", "")) if isinstance(said, dict) else str(said)[:200]
             except ValueError:
                 text = payload[:200].decode("utf-8", "replace")
             if destination != "__log":
@@ -191,7 +216,8 @@ class RosTcpTransport:
 
     def close(self) -> None:
         self._closing.set()
-        sock, self.sock = self.sock, None
+        with self._sock_lock:
+            sock, self.sock = self.sock, None
         if sock is not None:
             try:
                 sock.shutdown(socket.SHUT_RDWR)

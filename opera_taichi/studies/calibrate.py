@@ -43,7 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from .study import CSV_SHORT, Parameter, _is_num, _metric, _parameter, load_study, make_task, run_point, scale
+from .study import (CSV_SHORT, Parameter, _is_num, _metric, _parameter, check_out_folder, load_study, make_task,
+                    run_point, scale)
 
 OBJECTIVES = ("force", "terrain", "joints", "metric")
 REFINE_MIN_TRIALS = 4  # refine_point fits through 3 finished trials; the 4th is the refined one
@@ -387,6 +388,7 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
 
     label = str(path)
     study = load_study(path, out)
+    check_out_folder(study.out, study.name, str(path), calibrate=True)
     cfg = _section(study, label, trials)
     params = cfg["params"]
     _check_outputs(study, cfg, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)

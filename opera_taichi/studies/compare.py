@@ -357,11 +357,15 @@ def _read_bag(path: Path, key: str):
     try:
         # a file of a ROS 2 bag folder (beside its metadata.yaml) opens as the folder; a run's own run.mcap alone
         in_folder = path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file()
-        bag_path = path.parent if in_folder else path
+        bag_paths = [path.parent if in_folder else path]
+        if not in_folder and path.name in ("run.mcap", "run.bag"):  # a run's bag, in parts with checkpoints
+            from ..ros.bag import bag_parts
+
+            bag_paths = bag_parts(path.parent, path.suffix) or bag_paths
         from rosbags.typesys import Stores, get_typestore
 
         # a bag without its message definitions (ROS 2 before Iron) reads with the standard ones
-        with AnyReader([bag_path], default_typestore=get_typestore(Stores.LATEST)) as reader:
+        with AnyReader(bag_paths, default_typestore=get_typestore(Stores.LATEST)) as reader:
             conns = [c for c in reader.connections if c.msgtype.endswith("JointState")]
             if not conns:
                 found = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
@@ -393,8 +397,16 @@ def run_joints(run_dir: Path, key: str = "RUN_DIR") -> tuple[np.ndarray, dict[st
     if not path.is_file():
         raise UserError(f"{key}: {run_dir} has no joints.csv (a run without a machine?)")
     cols = read_csv_columns(path)
-    t = np.asarray(cols["t"], float)
-    return t, {name[:-2]: np.asarray(v, float) for name, v in cols.items() if name.endswith(".q")}
+    if not cols:
+        raise UserError(f"{key}: {path}: empty (a run that ended before its first rows were written?)")
+    try:
+        t = np.asarray(cols["t"], float)
+        joints = {name[:-2]: np.asarray(v, float) for name, v in cols.items() if name.endswith(".q")}
+    except (KeyError, ValueError):
+        raise UserError(f"{key}: {path}: not a run's joints.csv (no t and <joint>.q columns of numbers)") from None
+    if len(t) < 2 or not joints:
+        raise UserError(f"{key}: {path}: fewer than two rows of joint angles (a run that ended at once?)")
+    return t, joints
 
 
 def machine_joints(run_dir: Path) -> tuple[dict | None, str | None]:

@@ -14,6 +14,7 @@ yaw; robust to the dug area, which it leaves out as outliers, and it reports the
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -159,6 +160,12 @@ def _read_las(path: Path) -> Scan:
             if unit not in ("metre", "meter", "m", ""):
                 units = unit
                 break
+    if units == "m":  # a GeoKeyDirectory's own unit keys (laspy's CRS leaves out the vertical units key)
+        for vlr in las.header.vlrs:
+            geo_keys = getattr(vlr, "geo_keys", None)
+            if geo_keys:
+                units = _declared_units({int(k.id): int(k.value_offset) for k in geo_keys
+                                         if int(k.tiff_tag_location) == 0}, path)
     return Scan(path, pts, "points", units=units)
 
 
@@ -181,7 +188,8 @@ def _read_text(path: Path) -> Scan:
         first = fh.readline()
     delimiter = "," if "," in first else (";" if ";" in first else None)
     cells = [c.strip().strip('"').lower() for c in (first.split(delimiter) if delimiter else first.split())]
-    header = not all(_float_or_none(c) is not None for c in cells if c)
+    count_line = len([c for c in cells if c]) == 1 and cells[0].isdigit()  # a PTS file's point count
+    header = not count_line and not all(_float_or_none(c) is not None for c in cells if c)
     cols = (0, 1, 2)
     if header:
         try:
@@ -189,8 +197,10 @@ def _read_text(path: Path) -> Scan:
         except ValueError:
             raise UserError(f"--terrain: {path}: the header names no x, y, z columns (got "
                             f"{', '.join(cells)[:120]})") from None
-    data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, usecols=cols, ndmin=2,
-                      encoding="utf-8-sig")
+    with warnings.catch_warnings():  # an empty file: read_scan says so in one line, not numpy in two
+        warnings.simplefilter("ignore", UserWarning)
+        data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header or count_line else 0, usecols=cols, ndmin=2,
+                          encoding="utf-8-sig")
     return Scan(path, data, "points")
 
 
@@ -204,7 +214,35 @@ def _float_or_none(text: str):
 # GeoTIFF tags and keys (GeoTIFF 1.1 spec)
 _PIXEL_SCALE, _TIEPOINT, _TRANSFORM, _GEOKEYS, _NODATA = 33550, 33922, 34264, 34735, 42113
 _RASTER_TYPE_KEY, _LINEAR_UNITS_KEY, _VERTICAL_UNITS_KEY = 1025, 3076, 4099
+_PROJECTED_CRS_KEY = 3072
+NODATA_MAGNITUDE = 1e30  # m: a height beyond it is a fill value
 _UNITS = {9001: "m", 9002: "foot", 9003: "US survey foot", 9036: "km", 9035: "mile"}
+
+
+def _declared_units(keys: dict[int, int], path: Path) -> str:
+    """The units GeoTIFF geokeys declare (a GeoTIFF's, or a LAS file's GeoKeyDirectory): the linear and vertical
+    unit keys, else the units of the projected or geographic coordinate system their EPSG code names."""
+    for key in (_LINEAR_UNITS_KEY, _VERTICAL_UNITS_KEY):
+        if key in keys and keys[key] not in (9001, 32767):  # (32767: user-defined, given elsewhere)
+            return _UNITS.get(keys[key], f"EPSG unit {keys[key]}")
+    code = keys.get(_PROJECTED_CRS_KEY)
+    if code in (None, 0, 32767):
+        return "m"
+    try:
+        import pyproj
+    except ImportError:  # a declared CRS left unchecked would let a scan in feet through as metres
+        raise UserError(f"--terrain: {path}: the file declares the coordinate system EPSG:{code}; checking its "
+                        f"units needs pyproj (pip install 'opera-taichi[studies]')") from None
+    try:
+        axes = pyproj.CRS.from_epsg(code).axis_info
+    except Exception:  # noqa: BLE001 - a code pyproj does not know: its units cannot be told
+        raise UserError(f"--terrain: {path}: the file declares EPSG:{code}, which pyproj does not know; give the "
+                        f"scan in metres without it") from None
+    for axis in axes:
+        unit = (axis.unit_name or "").lower()
+        if unit not in ("metre", "meter", "m", ""):
+            return unit
+    return "m"
 
 
 def _read_geotiff(path: Path) -> Scan:
@@ -212,16 +250,22 @@ def _read_geotiff(path: Path) -> Scan:
 
     with tifffile.TiffFile(str(path)) as tif:
         page = tif.pages[0]
-        z = np.asarray(page.asarray(), float)
+        stored = page.asarray()
         tags = {t.code: t.value for t in page.tags.values()}
-    if z.ndim == 3:  # one band expected; take the first
-        z = z[..., 0] if z.shape[-1] < z.shape[0] else z[0]
-    if z.ndim != 2:
-        raise UserError(f"--terrain: {path}: expected a single-band elevation raster, got shape {z.shape}")
+    if stored.ndim == 3:  # one band expected; take the first
+        stored = stored[..., 0] if stored.shape[-1] < stored.shape[0] else stored[0]
+    if stored.ndim != 2:
+        raise UserError(f"--terrain: {path}: expected a single-band elevation raster, got shape {stored.shape}")
+    z = np.asarray(stored, float)
     if _NODATA in tags:
         nodata = _float_or_none(str(tags[_NODATA]).strip("\x00 "))
         if nodata is not None:
-            z[z == nodata] = np.nan
+            missing = z == nodata
+            if np.issubdtype(stored.dtype, np.floating):  # as stored: -9999.9 in float32 is float32(-9999.9)
+                with np.errstate(over="ignore", invalid="ignore"):
+                    missing |= stored == np.asarray(nodata).astype(stored.dtype)
+            z[missing] = np.nan
+    z[np.abs(z) > NODATA_MAGNITUDE] = np.nan  # a float's maximum, GIS tools' usual fill, is no elevation
     keys = {}
     raw = tags.get(_GEOKEYS)
     if raw is not None and len(raw) >= 4:
@@ -229,10 +273,7 @@ def _read_geotiff(path: Path) -> Scan:
             key_id, loc, _count, value = raw[4 + 4 * k: 8 + 4 * k]
             if loc == 0:
                 keys[int(key_id)] = int(value)
-    units = "m"
-    for key in (_LINEAR_UNITS_KEY, _VERTICAL_UNITS_KEY):
-        if key in keys and keys[key] != 9001:
-            units = _UNITS.get(keys[key], f"EPSG unit {keys[key]}")
+    units = _declared_units(keys, path)
     half = 0.0 if keys.get(_RASTER_TYPE_KEY) == 2 else 0.5  # PixelIsPoint: the tie point is the pixel centre
     if _TRANSFORM in tags:
         m = np.asarray(tags[_TRANSFORM], float).reshape(4, 4)
@@ -437,7 +478,8 @@ def fit_transform(points: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarra
     if mode not in ("auto", "plane", "rigid"):
         raise UserError(f"--fit-transform: expected auto, plane or rigid, got {mode!r}")
     pts = np.asarray(points, float)
-    if len(pts) > MAX_FIT_POINTS:
+    if len(pts) > MAX_FIT_POINTS:  # (sorted first: the subset, and so the fit, do not depend on the file's order)
+        pts = pts[np.lexsort(pts.T[::-1])]
         pts = pts[np.random.default_rng(seed).choice(len(pts), MAX_FIT_POINTS, replace=False)]
     c_scan = pts.mean(axis=0)
     local = pts - c_scan

@@ -219,6 +219,27 @@ def _metric(spec, label: str, i: int):
     raise UserError(f"{label}: {key}: expected a string or a mapping, got {spec!r}")
 
 
+def check_out_folder(out: Path, name: str, label: str, calibrate: bool = False) -> None:
+    """A study's or a calibration's folder: new, or its own from an earlier session (to go on from); not a file, not
+    a run folder or inside one, not another study's (their tables and runs would mix; a calibration's journal
+    guards its own trials, calibrate.open_study)."""
+    from ..runner import is_run_folder
+
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{label}: out: {out} is a file, not a folder")
+    holder = next((p for p in (out, *out.parents) if is_run_folder(p)), None)
+    if holder is not None:
+        raise UserError(f"{label}: out: {out} {'is' if holder == out else 'lies inside'} the run folder {holder}; "
+                        f"give a folder of its own")
+    try:
+        recorded = json.loads((out / "study.json").read_text()).get("name") if not calibrate else None
+    except (OSError, ValueError, AttributeError):
+        recorded = None
+    if recorded is not None and recorded != name:
+        raise UserError(f"{label}: out: {out} holds study {recorded!r}, not {name!r}; give another folder (or "
+                        f"remove it)")
+
+
 def load_study(path, out=None) -> Study:
     """Reads and checks a study file, expands its points and checks each point's scene (UserError, one line)."""
     from ..scene import _parse_yaml, _read_scene_text
@@ -306,6 +327,17 @@ def check_reference(reference: dict, label: str) -> None:
     if ("transform" in reference or fit is not None or "terrain_before" in reference) and "terrain" not in reference:
         raise UserError(f"{label}: reference: transform, fit_transform and terrain_before place a scan of the terrain; "
                         f"give reference.terrain (the scan after the dig)")
+    # the files themselves: an empty scan or a joint log without its columns is refused now, not after every run
+    from .compare import read_joint_log
+    from .scan import read_scan
+
+    readers = [(k, read_scan) for k in ("terrain", "terrain_before") if k in reference]
+    readers += [("joints", read_joint_log)] if "joints" in reference else []
+    for key, read in readers:
+        try:
+            read(reference[key], key=f"reference.{key}")
+        except UserError as exc:
+            raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
     if "against" in reference:
         if any(k in reference for k in ("terrain", "terrain_before", "joints")):
             raise UserError(f"{label}: reference.against: compares with another run; give it without terrain, "
@@ -731,6 +763,7 @@ def run_study(path, scheduler: str | None = None, workers: int | None = None, ou
     """Runs a study (resumable) and writes its table and plots; returns the path of study.csv, how many of its
     points failed and how many it has."""
     study = load_study(path, out)
+    check_out_folder(study.out, study.name, str(path))
     if study.calibrate is not None and not study.parameters:
         raise UserError(f"{path}: parameters: none to study (a calibration: `calibrate {path}`)")
     runs = study.out / "runs"

@@ -622,6 +622,33 @@ def _critical_metrics(p: dict, resolution: str, out: Path, cut, particles_of) ->
     return metrics
 
 
+def check_resumed_resolution(out: Path, labels, resolution: str) -> None:
+    """--resume into a folder of runs at another resolution would replace them (a forgotten --resolution): refused."""
+    for label in labels:
+        try:
+            kept = json.loads((Path(out) / label / "metrics.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(kept, dict) and kept.get("resolution") not in (None, resolution):
+            raise UserError(f"--resume: {Path(out) / label} holds a run at resolution {kept.get('resolution')}, not "
+                            f"{resolution}; give --resolution {kept.get('resolution')} or another --out")
+
+
+def check_case_folder(out: Path) -> None:
+    """A case's --out is a folder of its own: not a file, and neither a run folder nor inside one (the case writes
+    its run into OUT/run and its tool mesh beside it)."""
+    from ..runner import is_run_folder
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out: {out} is a file, not a folder")
+    resolved = out.resolve()
+    holder = next((p for p in (resolved, *resolved.parents) if is_run_folder(p)), None)
+    if holder is not None:
+        raise UserError(f"--out: {out} {'is' if holder == resolved else 'lies inside'} the run folder {holder}; "
+                        f"give a folder of its own")
+
+
 def run_case(case: str, params=None, resolution: str = "default", out_dir: str | Path | None = None,
              arch: str | None = None, quiet: bool = True) -> dict:
     """Run one validation case; writes OUT/run/ (the usual run folder) and OUT/metrics.json; returns the metrics."""
@@ -630,6 +657,7 @@ def run_case(case: str, params=None, resolution: str = "default", out_dir: str |
 
     p = parse_params(case, params)
     out = Path(out_dir) if out_dir is not None else Path("runs") / f"validate-{case}-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_case_folder(out)  # before the case writes its tool mesh there
     if case == "critical_height":
         return _run_critical_height(p, resolution, out, arch, quiet)
     sets, geo = build_overrides(case, p, resolution, work_dir=out)
@@ -707,6 +735,8 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
         manifest = json.loads((run_dir / "manifest.json").read_text())
     except (OSError, ValueError, KeyError, TypeError):
         return None
+    if not (isinstance(metrics, dict) and isinstance(manifest, dict) and isinstance(manifest.get("soil", {}), dict)):
+        return None  # (files of something else, or damaged: run again)
     p = parse_params(case, params)
     sets, geo = build_overrides(case, p, resolution, work_dir=out)
     same = (metrics.get("case") == case and metrics.get("resolution") == resolution

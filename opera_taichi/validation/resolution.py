@@ -23,7 +23,7 @@ from datetime import datetime
 from pathlib import Path
 
 from ..errors import UserError
-from .cases import finished_metrics, run_case
+from .cases import check_case_folder, finished_metrics, run_case
 from .report import SAND, solver_label
 
 CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
@@ -50,6 +50,7 @@ def study_set() -> list[tuple[str, str, dict, str]]:
 def run_study(out_dir=None, report_path="docs/resolution.md", arch=None, quiet: bool = True, resume: bool = False,
               report_only: bool = False) -> tuple[Path, list[str]]:
     out = Path(out_dir) if out_dir is not None else Path("runs") / "resolution"
+    check_case_folder(out)
     results: dict[str, dict] = {}
     for label, case, params, res in study_set():
         params = {k: str(v) for k, v in params.items()}

@@ -12,6 +12,7 @@ import atexit
 import contextlib
 import errno
 import io
+import math
 import socket
 import sys
 import threading
@@ -79,6 +80,8 @@ class LiveView(ThreadedObserver):
         self.running = threading.Event()   # cleared while the viewer's Pause holds the run
         self.running.set()
         self.sliders: dict = {}
+        self._range: dict = {}             # (machine, joint) -> the slider's (min, max), deg
+        self._good: dict = {}              # (machine, joint) -> its last finite value, deg
         self.view = None
         self._bucket = None
         self.server = start_server(host, port)   # early: a port in use fails before the soil is built
@@ -126,15 +129,26 @@ class LiveView(ThreadedObserver):
                         lo_d = float(np.degrees(lo)) if np.isfinite(lo) else -180.0
                         hi_d = float(np.degrees(hi)) if np.isfinite(hi) else 180.0
                         label = f"{m.name}.{j}" if len(self.view.info.machines) > 1 else j
+                        start = float(np.clip(round(float(np.degrees(value)), 1), lo_d, hi_d))
                         self.sliders[(m.name, j)] = gui.add_slider(
-                            label, min=round(lo_d, 1), max=round(hi_d, 1), step=0.5,
-                            initial_value=float(np.clip(round(float(np.degrees(value)), 1), lo_d, hi_d)))
+                            label, min=round(lo_d, 1), max=round(hi_d, 1), step=0.5, initial_value=start)
+                        self._range[(m.name, j)] = (round(lo_d, 1), round(hi_d, 1))
+                        self._good[(m.name, j)] = start
 
     def targets(self) -> dict[str, dict[str, float]]:
         """The teleop sliders' joint targets (rad) per machine."""
         out: dict[str, dict[str, float]] = {}
         for (machine, joint), slider in self.sliders.items():
-            out.setdefault(machine, {})[joint] = float(np.radians(float(slider.value)))
+            try:
+                deg = float(slider.value)
+            except (TypeError, ValueError):
+                deg = math.nan
+            if not math.isfinite(deg):  # a browser can send any number: the last good value stands
+                deg = self._good[(machine, joint)]
+            lo, hi = self._range[(machine, joint)]
+            deg = min(max(deg, lo), hi)
+            self._good[(machine, joint)] = deg
+            out.setdefault(machine, {})[joint] = float(np.radians(deg))
         return out
 
     def sample(self, sim) -> None:

@@ -114,7 +114,7 @@ class Player:
             self.t += (now - last) * float(self.speed.value.rstrip("x"))
             last = now
             if self.t > self.reader.times[-1]:
-                if self.loop.value:
+                if self.loop.value and self.reader.times[-1] > self.reader.times[0]:  # (one frame: nothing to loop)
                     self.t = float(self.reader.times[0])
                     self.shown = -1
                 else:

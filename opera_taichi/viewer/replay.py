@@ -195,6 +195,16 @@ class ReplayReader:
         kind, meta, start, length = records[0]
         if meta.get("format") != "opera-taichi replay" or meta.get("version") != FORMAT:
             raise UserError(f"{self.path}: replay format {meta.get('version')!r}, this build reads {FORMAT}")
+        try:
+            self._read_header(meta, start, length)
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError, zlib.error) as exc:
+            raise UserError(f"{self.path}: a replay header that cannot be read ({type(exc).__name__}: {exc})") \
+                from None
+        self.frames = [(m, s, n) for k, m, s, n in records[1:] if k == b"F"]
+        self.metas = [m for m, _, _ in self.frames]
+        self.times = np.array([m["t"] for m in self.metas], float)
+
+    def _read_header(self, meta: dict, start: int, length: int) -> None:
         arrays = self._arrays(meta, start, length)
         self.header = meta
         tools = [ToolInfo(t["name"], t["owner"], t["link"], arrays[f"tool{i}_v"].copy(), arrays[f"tool{i}_f"].copy())
@@ -207,9 +217,6 @@ class ReplayReader:
              for m in meta["machines"]],
             tools, _array(meta["domain_min"]), _array(meta["domain_max"]), [tuple(b) for b in meta["beds"]],
             arrays["radii"].copy(), arrays["masses"].copy(), self.box.decode(self.q0))
-        self.frames = [(m, s, n) for k, m, s, n in records[1:] if k == b"F"]
-        self.metas = [m for m, _, _ in self.frames]
-        self.times = np.array([m["t"] for m in self.metas], float)
 
     def _scan(self):
         data, pos = self.data, 0
@@ -226,6 +233,8 @@ class ReplayReader:
                 meta = json.loads(m)
             except ValueError:
                 return
+            if not isinstance(meta, dict) or (kind == b"F" and not isinstance(meta.get("t"), (int, float))):
+                return   # (a record no writer of this format makes)
             yield kind, meta, pos + _HEAD.size + m_len, d_len
             pos = end
 
@@ -271,6 +280,12 @@ def open_run(run_dir) -> ReplayReader:
         raise UserError(f"view: {manifest} is not an opera-taichi run manifest")
     path = run_dir / REPLAY_FILE
     if not path.is_file():
+        output = (data.get("scene") or {}).get("output") or {}
+        status = data.get("status", "unknown")
+        if isinstance(output, dict) and output.get("replay"):
+            if status == "done":
+                raise UserError(f"view: {run_dir} has no {REPLAY_FILE}, which its run recorded (moved or deleted?)")
+            raise UserError(f"view: {run_dir} stopped (status {status}) before its first replay frame was written")
         raise UserError(f"view: {run_dir} was recorded without a replay; run it again with --replay "
                         f"(or output.replay: true)")
     reader = ReplayReader(path)

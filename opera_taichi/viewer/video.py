@@ -7,6 +7,7 @@ One frame per recorded frame, played at the recording rate (real time).
 """
 from __future__ import annotations
 
+import subprocess
 import sys
 from pathlib import Path
 
@@ -107,7 +108,10 @@ def write_mp4(run_dir, out, quiet: bool = False, size=(1280, 720)) -> Path:
     hi = np.maximum(info.domain_max[:2], [3.0, 3.0])
     x_range, y_range = (lo[0] - 0.5, hi[0] + 0.5), (c[1] - 4.0, c[1] + 4.0)
     z_range = (min(lo[2], -1.2), 5.0)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:   # a file where the folder should be, a folder it may not write
+        raise UserError(f"--mp4: cannot write {out} ({type(exc).__name__}: {exc.strerror or exc})") from None
     writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
     r = float(np.median(info.radii)) if info.n_particles else 0.05
     points_per_m = 0.6 * size[0] * 72 / dpi / (x_range[1] - x_range[0])   # marker size: about a grain's diameter
@@ -137,7 +141,7 @@ def write_mp4(run_dir, out, quiet: bool = False, size=(1280, 720)) -> Path:
                     ax.add_collection3d(Poly3DCollection(tris, facecolors=cols, edgecolors="none"))
                 ax.set_title(f"{info.name}   t = {frame.t:5.2f} s", loc="left")
                 writer.grab_frame()
-    except OSError as exc:   # ffmpeg could not write (a bad path, a full disk)
+    except (OSError, subprocess.CalledProcessError) as exc:   # ffmpeg could not write (a bad path, a full disk)
         raise UserError(f"--mp4: cannot write {out} ({type(exc).__name__}: {' '.join(str(exc).split())})") \
             from None
     finally:

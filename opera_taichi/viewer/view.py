@@ -266,9 +266,11 @@ class SceneView:
             series.append(uplot.Series(label=f"{j} cmd", stroke=JOINT_COLOURS[k % len(JOINT_COLOURS)], width=1,
                                        dash=(6.0, 4.0)))
         scales = {"x": uplot.Scale(time=False, auto=True), "y": uplot.Scale(auto=True)}
-        self.joint_plot = gui.add_uplot(data=tuple([empty] * (1 + 2 * len(joints))), series=tuple(series),
-                                        scales=scales, title="joint angles (deg): actual, commanded dashed",
-                                        aspect=1.4, legend=uplot.Legend(show=False))
+        self.joint_plot = None  # (a scene with no machine, only a tool, has no joints to plot)
+        if joints:
+            self.joint_plot = gui.add_uplot(data=tuple([empty] * (1 + 2 * len(joints))), series=tuple(series),
+                                            scales=scales, title="joint angles (deg): actual, commanded dashed",
+                                            aspect=1.4, legend=uplot.Legend(show=False))
         self.force_plot = gui.add_uplot(data=(empty, empty),
                                         series=(uplot.Series(label="t (s)"),
                                                 uplot.Series(label="|F| (kN)", stroke="#d62728", width=2)),
@@ -280,7 +282,8 @@ class SceneView:
         if len(data) < 2:
             return
         n = len(self.history.joints)
-        self.joint_plot.data = tuple(np.ascontiguousarray(data[:, k]) for k in range(1 + 2 * n))
+        if self.joint_plot is not None:
+            self.joint_plot.data = tuple(np.ascontiguousarray(data[:, k]) for k in range(1 + 2 * n))
         self.force_plot.data = (np.ascontiguousarray(data[:, 0]), np.ascontiguousarray(data[:, -1]))
 
     # ------------------------------------------------------------------------------------------ frames
