@@ -402,18 +402,23 @@ def test_cmd_vel_drives_the_tracks_of_a_free_base():
         sim.close()
 
 
+def _tracked_machine_and_bridge():
+    """The dig-cycle machine on its tracks, no motion, and a bridge controller bound to it (speeds expire in 0.5 s)."""
+    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    log = _Log()
+    ctl = BridgeController(log, command_timeout=0.5)
+    ctl.bind(sim.model)
+    return sim, log, ctl, _topics(sim)
+
+
 def test_speed_commands_expire_so_a_dead_controller_does_not_leave_the_machine_driving():
     """A cmd_vel and a joint velocity target each sent once: they act for bridge.command_timeout (0.5 s of simulated
     time), then the tracks stop and the joint's target speed becomes 0 (said once each); the machine comes to rest
     and stays there, also after an emergency stop is released. A position target does not expire."""
-    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    sim, log, ctl, topics = _tracked_machine_and_bridge()
+    T = typestore(2).types
+    V = T["geometry_msgs/msg/Vector3"]
     try:
-        log = _Log()
-        ctl = BridgeController(log, command_timeout=0.5)
-        ctl.bind(sim.model)
-        topics = _topics(sim)
-        T = typestore(2).types
-        V = T["geometry_msgs/msg/Vector3"]
         arm = sim.machine.joint_names.index("arm_joint")
         ctl.handle(topics["tracks/cmd_vel"], T["geometry_msgs/msg/Twist"](linear=V(x=0.5, y=0, z=0),
                                                                             angular=V(x=0, y=0, z=0)))
@@ -561,14 +566,10 @@ def test_the_bridge_after_a_resume_a_stop_in_the_same_step_and_an_overflowing_tw
     (2) a controller that takes over a machine already moving (a resumed run: the commands are gone) lets those
     speeds expire as its own; (3) a target and a release of the stop arriving in the same step: the target, given
     under the hold, does not act; (4) with --bridge-after-motion, a stop acts during the scene's motion."""
-    sim = ot.Simulation.from_scene(DIG_CYCLE, {"motion": None, "machine.fixed_base": False})
+    sim, log, ctl, topics = _tracked_machine_and_bridge()
+    T = typestore(2).types
+    V = T["geometry_msgs/msg/Vector3"]
     try:
-        log = _Log()
-        ctl = BridgeController(log, command_timeout=0.5)
-        ctl.bind(sim.model)
-        topics = _topics(sim)
-        T = typestore(2).types
-        V = T["geometry_msgs/msg/Vector3"]
         ctl.handle(topics["tracks/cmd_vel"], T["geometry_msgs/msg/Twist"](linear=V(x=1e308, y=0, z=0),
                                                                             angular=V(x=0, y=0, z=1e308)))
         assert ctl.accepted == 0 and "give track speeds beyond any number" in log.lines[-1]
