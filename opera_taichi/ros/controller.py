@@ -131,7 +131,7 @@ class BridgeController:
                 scripted.machines.setdefault(name, MachineControl()).hold = mc.hold
             return scripted
         merged: dict[str, MachineControl] = {}
-        held = {name: m.held for name, m in sim.machines.items()}
+        held = {name: m.held for name, m in sim.machines.items()} if due else {}  # (most steps bring nothing)
         for _, name, mc in due:     # in arrival order: the latest command of a joint wins
             if mc.hold is True:  # a stop ends what came before it in this step (the machine applies it first)
                 merged[name] = MachineControl(hold=True)
