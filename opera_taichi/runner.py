@@ -116,8 +116,8 @@ def _new_manifest(scene, model) -> dict:
 
     return {"name": scene.name, "status": "running", "scene": scene_to_dict(scene), "versions": _versions(),
             "seed": int(scene.sim.seed), "started": now_iso(), "heartbeat": now_iso(), "pid": os.getpid(),
-            "host": socket.gethostname(), "command": " ".join(sys.argv), "warnings": list(model.warnings),
-            "machines": [m.name for m in model.machines]}
+            "pid_start": process_start(os.getpid()), "host": socket.gethostname(), "command": " ".join(sys.argv),
+            "warnings": list(model.warnings), "machines": [m.name for m in model.machines]}
 
 
 def _engine_block(sim) -> dict:
@@ -276,7 +276,8 @@ def run_scene(scene, out_dir: str | Path | None = None, arch: str | None = None,
                             f"run_scene(..., controller=..., resume=True))")
         data["driver"] = driver_of(controller)  # what drives it from here (a later resume checks against it)
         manifest = Manifest(out / "manifest.json", data)
-        manifest.data.update(status="running", pid=os.getpid(), host=socket.gethostname(), heartbeat=now_iso(),
+        manifest.data.update(status="running", pid=os.getpid(), pid_start=process_start(os.getpid()),
+                             host=socket.gethostname(), heartbeat=now_iso(),
                              status_before_resume=previous)
     else:
         manifest = Manifest(out / "manifest.json", _new_manifest(scene, model))
@@ -407,6 +408,17 @@ def process_alive(pid) -> bool:
     return True
 
 
+def process_start(pid: int) -> str | None:
+    """When the kernel started the process (Linux: /proc/PID/stat's starttime, clock ticks since boot), so that a
+    pid the system gave to another process after the run's died is not taken for the run; None elsewhere."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except (OSError, ValueError):
+        return None
+    fields = stat.rsplit(")", 1)[-1].split()  # after the command name, which may hold spaces and parentheses
+    return fields[19] if len(fields) > 19 else None  # field 22 of proc(5); the split starts at field 3
+
+
 def is_run_folder(folder: Path) -> bool:
     """Whether the folder holds a run's manifest (not another tool's manifest.json)."""
     try:
@@ -432,9 +444,16 @@ def run_folder_status(run_dir: Path) -> tuple[str, dict]:
     if status == "running":
         same_host = manifest.get("host") in (None, socket.gethostname())
         pid = manifest.get("pid")
-        if not (same_host and isinstance(pid, int) and process_alive(pid)) and same_host:
+        if same_host and not (process_alive(pid) and _same_process(pid, manifest.get("pid_start"))):
             status = "died"
     return status, manifest
+
+
+def _same_process(pid: int, recorded_start) -> bool:
+    if recorded_start is None:
+        return True  # a manifest written before the start time was recorded, or off Linux: the pid alone
+    now = process_start(pid)
+    return now is None or now == recorded_start
 
 
 def resume_scene(run_dir: Path):

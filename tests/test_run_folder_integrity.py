@@ -253,3 +253,19 @@ def test_runs_lists_damaged_and_odd_folders_with_a_true_status(tmp_path, capsys)
     assert {n: rows[n]["status"] for n in rows} == {"huge": "died", "minus": "died", "zero": "died", "iso": "running"}
     assert main(["runs", str(tmp_path)]) == 0
     assert capsys.readouterr().out.count("died") == 3
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="the process start time is read from Linux's /proc")
+def test_a_run_whose_pid_another_process_has_now_reads_died(tmp_path):
+    """A run killed long ago whose pid the system gave to another live process: the manifest's recorded start time
+    of the run's process tells them apart (the pid alone had said running, and --resume refused)."""
+    from opera_taichi.runner import process_start, run_folder_status
+
+    _fake_run(tmp_path / "reused", os.getpid())
+    record = json.loads((tmp_path / "reused" / "manifest.json").read_text())
+    mine = process_start(os.getpid())
+    assert mine is not None and mine.isdigit()
+    (tmp_path / "reused" / "manifest.json").write_text(json.dumps({**record, "pid_start": str(int(mine) - 1)}))
+    assert run_folder_status(tmp_path / "reused")[0] == "died"
+    (tmp_path / "reused" / "manifest.json").write_text(json.dumps({**record, "pid_start": mine}))
+    assert run_folder_status(tmp_path / "reused")[0] == "running"
