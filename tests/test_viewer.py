@@ -113,6 +113,31 @@ def test_mp4_has_one_frame_per_recorded_frame(run, tmp_path):
     assert seconds == pytest.approx(3.1, abs=0.15)     # played at the recording rate: real time
 
 
+def test_mp4_axes_hold_a_machine_far_from_the_bed(run):
+    """The video's axes come from what it draws: the same replay with the machine parked 15 m beside the bed keeps
+    every frame's machine inside them (the axes were the bed's x and 4 m either side of its middle)."""
+    from opera_taichi.viewer import video
+
+    reader = open_run(run)
+    machines = [(m.name, video._MachineMesh(m.urdf, m.joints)) for m in reader.info.machines]
+
+    class Parked:
+        def __len__(self):
+            return len(reader)
+
+        def frame(self, i):
+            frame = reader.frame(i)
+            for state in frame.machines.values():
+                state["base"] = np.asarray(state["base"], float) + [0.0, 15.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+            return frame
+
+    lo, hi = video._extent(Parked(), reader.info, machines, [])
+    assert hi[1] > 15.0
+    for i in range(len(reader)):
+        drawn = list(video._meshes(Parked().frame(i), machines, []))
+        assert drawn and all((tris >= lo).all() and (tris <= hi).all() for tris, _ in drawn)
+
+
 def test_teleop_sliders_command_the_machine_and_pause_holds_the_loop():
     import opera_taichi as ot
     from opera_taichi.observers import RunContext
@@ -245,5 +270,18 @@ def test_a_scene_with_only_a_tool_is_shown_and_an_unwritable_video_is_one_line(t
         assert view.joint_plot is None
     finally:
         server.stop()
+    from opera_taichi.geometry import quat_to_matrix
+    from opera_taichi.viewer import video
+
+    blade = reader.info.tools[0]
+    tools = [(0, video._ToolMesh(blade.vertices, blade.faces))]
+    last = reader.frame(len(reader) - 1)
+    (tris, _), = video._meshes(last, [], tools)           # the video draws the blade, where it was recorded
+    pose = last.tool_poses[0]
+    posed = blade.vertices @ quat_to_matrix(pose[3:]).T + pose[:3]
+    np.testing.assert_allclose(tris.reshape(-1, 3).min(axis=0), posed.min(axis=0), atol=1e-5)
+    np.testing.assert_allclose(tris.reshape(-1, 3).max(axis=0), posed.max(axis=0), atol=1e-5)
+    lo, hi = video._extent(reader, reader.info, [], tools)
+    assert (posed >= lo).all() and (posed <= hi).all()
     (tmp_path / "afile").write_text("")
     _one_line_exit_2(capsys, ["view", str(out), "--mp4", str(tmp_path / "afile" / "x.mp4")], "--mp4: cannot write")
