@@ -881,6 +881,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                     lever = -r * n
                                     x_c = x + lever
                                     f_c = vec3(0.0)
+                                    m_r_tool = vec3(0.0)
                                     if sample[0] < r:
                                         hit = True
                                         w_tool = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
@@ -896,6 +897,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                                                            prm[P_MU_TOOL], prm[P_MU_R], prm, dt,
                                                                            prm[P_ADH_F])
                                         torque += lever.cross(f_t) + m_r
+                                        m_r_tool = m_r
                                         surf_h[i, WALL_SLOTS + t] = h_new
                                         tool_bits |= 1 << t
                                     if prm[P_ADH_F] > 0.0:
@@ -903,7 +905,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                     force += f_c
                                     arm = x_c - origin
                                     on_tool = -f_c
-                                    moment = arm.cross(on_tool)
+                                    moment = arm.cross(on_tool) - m_r_tool  # the rolling resistance's reaction too
                                     for c in ti.static(range(3)):
                                         tool_sum[t, c] += on_tool[c]
                                         tool_sum[t, 3 + c] += moment[c]

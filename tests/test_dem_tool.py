@@ -195,6 +195,29 @@ def test_tool_forces_obey_newtons_third_law(adhesion):
     assert np.abs(change + impulse).max() < 1e-6 * np.linalg.norm(change)
 
 
+def test_a_grain_spinning_on_a_tool_gives_it_the_rolling_resistance_torque():
+    """A grain spun about the vertical on a still plate, right above the plate's origin: the rolling resistance that
+    slows it acts on the plate too, so the angular momentum the grain loses is the angular impulse the plate gets
+    (the plate got none: its moment was only the contact forces' about its origin)."""
+    soil = make_soil(rolling_resistance=0.5)
+    t = soil.add_tool("plate", trimesh.creation.box([0.6, 0.6, 0.04]))
+    soil.set_tool_state(t, [0, 0, 0.5], [0, 0, 0, 1], [0, 0, 0], [0, 0, 0])
+    r = soil.micro.radius
+    soil.set_particles([[0.0, 0.0, 0.52 + 0.999 * r]])
+    soil.advance(0.05)
+    p = soil.particles()
+    soil.set_particles(p["positions"], velocities=np.zeros((1, 3)), angular_velocities=[[0.0, 0.0, 20.0]])
+    inertia = 0.4 * p["masses"][0] * r * r
+    spin0 = inertia * soil.particles()["angular_velocities"][0]
+    impulse = np.zeros(3)
+    for _ in range(20):
+        soil.advance(0.002)
+        impulse += soil.last_tool_impulse[t, 3:]
+    change = inertia * soil.particles()["angular_velocities"][0] - spin0
+    assert change[2] < -0.1 * abs(spin0[2])   # the rolling resistance did slow it
+    assert abs(change[2] + impulse[2]) < 1e-3 * abs(change[2])
+
+
 def test_tool_moves_kinematically_within_advance():
     soil = make_soil()
     t = soil.add_tool("plate", trimesh.creation.box([0.1, 0.1, 0.1]))
