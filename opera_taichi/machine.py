@@ -4,7 +4,9 @@ Each actuated joint follows its position target through a speed command
     v_cmd = clip(gain * (q_target - q), -max_speed, max_speed)
 (or, in velocity mode, v_cmd = clip(qd_target, -max_speed, max_speed))
 applied as a velocity motor that can exert at most max_torque: an overloaded joint stalls or is pushed
-back, it never teleports, and it never runs faster than its speed limit. Non-actuated movable joints
+back and never teleports. Under its own drive a joint never runs faster than its speed limit; a load beyond its
+torque limit backdrives it as fast as the load and the inertia make it (a relief valve giving way: 150 kN on the
+ZX120's bucket drives the boom down at several times its 0.7 rad/s). Non-actuated movable joints
 (OPERA's bucket_end_joint) are welded. Without a fixed base the machine stands on a ground plane on three
 frictionless wheels per side, and the ground grips its tracks where they touch (tracks.py; skid steer).
 """

@@ -328,7 +328,8 @@ class WrenchCsv(CsvObserver):
 
 def hull_halfspaces(mesh) -> np.ndarray:
     """(n, 4) plane equations of the convex hull of a tool mesh: inside when n.x + d <= 0 for all.
-    The hull of an open bucket is its struck volume (the opening closed by the strike plane)."""
+    The hull of an open bucket is its struck volume and the wedge between its opening and its highest points (a
+    ZX120's pin lugs), where a heaped load sits."""
     hull = mesh.convex_hull
     normals = hull.face_normals
     d = -np.einsum("ij,ij->i", normals, hull.triangles[:, 0, :])

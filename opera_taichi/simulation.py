@@ -253,9 +253,11 @@ class Simulation:
         return out
 
     def soil_in_tools(self) -> dict[str, float]:
-        """Soil mass (kg) whose grain centres lie inside each soil tool's convex hull (a bucket's struck volume),
-        by tool name: what soil_mass.csv's `in_<tool>_kg`, summary.json's `soil_held_kg` and the gym env's
-        `bucket_mass` read. Soil heaped above the strike plane is not counted."""
+        """Soil mass (kg) whose grain centres lie inside each soil tool's convex hull, by tool name: what
+        soil_mass.csv's `in_<tool>_kg`, summary.json's `soil_held_kg` and the gym env's `bucket_mass` read. A bucket's
+        hull is its struck volume and the wedge above the opening up to its pin lugs (the ZX120's: 0.38 and 0.15
+        m3), so a load heaped over the opening within that wedge counts, and soil heaped beyond the hull does not;
+        while the bucket is buried, the bed soil in that wedge counts too."""
         from .observers import hull_halfspaces, mass_in_tools
 
         if getattr(self, "_closed", False):
