@@ -181,13 +181,15 @@ class Simulation:
 
     # ------------------------------------------------------------------------------------------ state
     def get_state(self, soil: bool = True) -> State:
-        """A copy of everything that changes (soil=False leaves out the soil's arrays)."""
+        """A copy of everything that changes. soil=False, for control loops, leaves out the soil's arrays and
+        Bullet's contact caches: set back, such a state goes on exactly only where no machine stands on tracks."""
         return State(t=self.t, step=self.step_count,
                      machines={name: m.get_state() for name, m in self.machines.items()},
                      soil=self.soil.get_state() if (soil and self.soil is not None) else None,
                      tool_wrench=self.tool_wrench.copy(),
                      control=Control.from_dict(self.applied.to_dict()), rng=self.rng.bit_generator.state,
-                     model=self.model.fingerprint)
+                     model=self.model.fingerprint,
+                     rigid=self.world.save_state() if soil and self.world is not None else None)
 
     def set_state(self, state: State) -> None:
         """Put a State back; the simulation then goes on exactly as the one it was taken from."""
@@ -215,6 +217,8 @@ class Simulation:
             self.soil.set_state(state.soil)  # (refuses another solver layout before it writes anything)
         for name, ms in state.machines.items():
             self.machines[name].set_state(ms)
+        if state.rigid is not None and self.world is not None:
+            self.world.restore_state(state.rigid)  # after the machines' resets, which would clear its contacts
         self.step_count, self.t = int(state.step), float(state.t)
         self.tool_wrench = np.array(state.tool_wrench, dtype=np.float64).reshape(-1, 6)
         self.applied = Control.from_dict(state.control.to_dict()) if state.control is not None \
@@ -302,6 +306,8 @@ def save_checkpoint(path, state: State, model: Model, soil, extra: dict | None =
               "rng": state.rng, "extra": extra or {}}
     arrays = {"header": np.array(json.dumps(header, default=json_default))}
     arrays["tool_wrench"] = state.tool_wrench
+    if state.rigid is not None:
+        arrays["rigid"] = np.frombuffer(state.rigid, dtype=np.uint8)
     for name, ms in state.machines.items():
         for key, value in ms.arrays().items():
             arrays[f"machine/{name}/{key}"] = value
@@ -349,11 +355,12 @@ def load_checkpoint(path, model: Model, soil) -> tuple[State, dict]:
             elif key.startswith("soil/"):
                 soil_arrays[key[5:]] = f[key]
         tool_wrench = f["tool_wrench"]
+        rigid = f["rigid"].tobytes() if "rigid" in f.files else None
     state = State(t=float(header["t"]), step=int(header["step"]),
                   machines={k: MachineState.from_arrays(v) for k, v in machines.items()},
                   soil=soil_arrays or None, tool_wrench=tool_wrench,
                   control=None if header.get("control") is None else Control.from_dict(header["control"]),
-                  rng=_rng_state(header.get("rng")), model=header.get("model"))
+                  rng=_rng_state(header.get("rng")), model=header.get("model"), rigid=rigid)
     return state, header.get("extra") or {}
 
 

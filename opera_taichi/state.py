@@ -74,6 +74,7 @@ class State:
     control: Control | None = None             # the last control applied
     rng: dict | None = None                    # numpy bit generator state of sim.rng
     model: str | None = None                   # the fingerprint of the model it was taken from (None: not known)
+    rigid: bytes | None = None                 # Bullet's own state of the world (contact caches; None: not copied)
 
     def copy(self) -> "State":
         import copy
