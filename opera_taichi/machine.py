@@ -200,7 +200,7 @@ class BulletMachine:
             clipped = min(max(value, self._lower[i]), self._upper[i])
             if clipped != value and name not in self._clip_warned and math.isfinite(value):
                 self._clip_warned.add(name)
-                self._say(f"machine {self.name}: {name} target {value:.4f} rad is beyond the joint's limits "
+                self._say(f"machine {self.name}: {name} target {value:.6g} rad is beyond the joint's limits "
                           f"[{self._lower[i]:.4f}, {self._upper[i]:.4f}] rad; clipped (said once per joint)")
             self._targets[i] = clipped
             self._velocity_mode[i] = False

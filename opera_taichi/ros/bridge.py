@@ -138,7 +138,11 @@ def run_parts(scene, *, ros1: bool = False, ros_tcp: str | None = None, pace: st
     bridge = scene.bridge
     if ros1 or ros_tcp is not None:
         base = bridge.model_dump() if bridge is not None else {}
-        base.update(kind="ros1" if ros1 else "ros_tcp", address=None if ros1 else ros_tcp)
+        if ros1:  # the scene's master URI (bridge.address, or --set bridge.address=...) stays; an endpoint's goes
+            keep = base.get("address") if base.get("kind") in (None, "ros1") else None
+            base.update(kind="ros1", address=keep)
+        else:
+            base.update(kind="ros_tcp", address=ros_tcp)
         bridge = scene.bridge = BridgeConfig.model_validate(base)
     if after_motion:
         if bridge is None:

@@ -42,6 +42,7 @@ def master_uri() -> str:
 
 MASTER_CHECK_S = 2.0     # wall seconds between asking the master whether it is still there
 MASTER_TIMEOUT_S = 2.0   # a probe not answered in this time is a miss; two misses in a row: the master is gone
+CLOSE_WAIT_S = 5.0       # the longest a run's end waits for the master to take the node's unregistering
 
 
 class _TimeoutTransport(xmlrpc.client.Transport):
@@ -58,14 +59,17 @@ class _TimeoutTransport(xmlrpc.client.Transport):
 
 
 def check_master() -> None:
-    """A one-line error now rather than a node that waits for a master forever."""
+    """A one-line error now rather than a node that waits for a master forever (one that accepts the connection
+    and never answers too: the probe times out)."""
     uri = master_uri()
     try:
-        code, _, _ = xmlrpc.client.ServerProxy(uri).getPid("/opera_taichi_probe")
-    except (OSError, xmlrpc.client.Error) as exc:
-        raise UserError(f"--ros1: no ROS master at ROS_MASTER_URI={uri} ({exc}); start `roscore` or set "
-                        f"ROS_MASTER_URI") from None
-    if code != 1:
+        reply = xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(MASTER_TIMEOUT_S)).getPid(
+            "/opera_taichi_probe")
+    except Exception as exc:  # noqa: BLE001 - refused, timed out, a bad URI, not HTTP, not XML-RPC: no master
+        raise UserError(f"--ros1: no ROS master at ROS_MASTER_URI={uri} ({type(exc).__name__}: "
+                        f"{' '.join(str(exc).split()) or 'no answer'}); start `roscore` or set ROS_MASTER_URI") \
+            from None
+    if not (isinstance(reply, (list, tuple)) and len(reply) == 3 and reply[0] == 1):
         raise UserError(f"--ros1: ROS_MASTER_URI={uri} did not answer as a ROS master")
 
 
@@ -158,9 +162,17 @@ class Ros1Transport:
         pub.publish(msg)
 
     def close(self) -> None:
+        """Unregisters from the master, but waits for it at most CLOSE_WAIT_S: a master that stopped answering
+        (its host frozen) must not keep Ctrl-C from ending the run and writing its folder."""
         self._watch.close()
-        for s in self._subs:
-            s.unregister()
-        for p in self._pubs.values():
-            p.unregister()
-        self.rospy.signal_shutdown("opera-taichi run ended")
+
+        def leave():
+            for s in self._subs:
+                s.unregister()
+            for p in self._pubs.values():
+                p.unregister()
+            self.rospy.signal_shutdown("opera-taichi run ended")
+
+        thread = threading.Thread(target=leave, name="ros1-close", daemon=True)
+        thread.start()
+        thread.join(CLOSE_WAIT_S)
