@@ -198,3 +198,19 @@ def test_validate_warns_of_a_motion_beyond_the_joint_limits(capsys):
     out, err = capsys.readouterr()
     assert out.strip().endswith(": ok")
     assert err.startswith("warning: motion: boom_joint is asked ") and "5.2360 rad, beyond its limits" in err
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "0"])
+def test_checkpoint_every_must_be_finite_and_positive(tmp_path, capsys, value):
+    """`inf` passed the old `> 0` check and crashed the run at its first step (a checkpoint rate of 1/inf = 0)."""
+    rc = cli.main(["run", str(tmp_path / "absent.yaml"), "--checkpoint-every", value])
+    _assert_one_line(rc, capsys.readouterr(), ["--checkpoint-every", "finite positive", f"got {value}"])
+
+
+@pytest.mark.parametrize("value", ["inf", "-1"])
+def test_view_rate_must_be_finite_and_positive(tmp_path, capsys, value):
+    """Refused before the run starts (`inf` used to crash the live view at its first frame)."""
+    rc = cli.main(["run", str(REPO / "scenes" / "zx120_dig_cycle.yaml"), "--view", "--view-rate", value,
+                   "--out", str(tmp_path / "run")])
+    _assert_one_line(rc, capsys.readouterr(), ["--view-rate", "finite positive", f"got {value}"])
+    assert not (tmp_path / "run").exists()
