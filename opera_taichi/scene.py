@@ -551,12 +551,19 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise CsvProblem(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})") from None
-    rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+    reader = csv.reader(text.splitlines())
+    try:
+        rows = [row for row in reader if row and any(c.strip() for c in row)]
+    except csv.Error as exc:  # e.g. a cell beyond the csv module's field size limit (128 KiB)
+        raise CsvProblem(f"line {reader.line_num}: not readable as CSV ({exc})") from None
     if not rows:
         raise CsvProblem("empty; expected a header `t,<joint>,...` and at least one row")
     header = [c.strip() for c in rows[0]]
     if "t" not in header:
         raise CsvProblem(f"header has no `t` column, got {_show(header)}")
+    repeated = next((name for name in header if header.count(name) > 1), None)
+    if repeated is not None:  # which of two `t` (or two joint) columns is meant cannot be told
+        raise CsvProblem(f"header: column {repeated!r} appears more than once")
     joints: dict[str, tuple[int, float]] = {}
     # a run's own joints.csv: `<joint>.q` are the positions; its other `<joint>.*` columns are not angles
     recorded = any(name.endswith(".q") for name in header)

@@ -82,6 +82,10 @@ CASES = [
     ("csv_unsorted", MACHINE + "motion: {type: csv, file: unsorted.csv}\n", [],
      ["motion.file", "unsorted.csv", "line 3", "strictly increasing"]),
     ("csv_nan", MACHINE + "motion: {type: csv, file: nan.csv}\n", [], ["motion.file", "nan.csv", "finite"]),
+    ("csv_huge_cell", MACHINE + "motion: {type: csv, file: huge_cell.csv}\n", [],
+     ["motion.file", "huge_cell.csv", "line 2", "field limit"]),
+    ("csv_two_t_columns", MACHINE + "motion: {type: csv, file: two_t.csv}\n", [],
+     ["motion.file", "two_t.csv", "column 't' appears more than once"]),
     ("missing_mesh", "tools: [{name: blade, mesh: blade.stl, start: [0, 0, 0]}]\n", [], ["tools.0.mesh", "blade.stl"]),
     ("tool_box_and_mesh_missing", "tools: [{name: blade, start: [0, 0, 0]}]\n", [], ["tools.0.box", "box or mesh"]),
     ("tool_names_repeat", "tools: [{name: a, box: [1, 1, 1], start: [0, 0, 0]}, "
@@ -109,6 +113,8 @@ def scene_dir(tmp_path):
     (tmp_path / "robot.urdf").write_text('<robot name="r"><link name="base_link"/></robot>\n')
     (tmp_path / "unsorted.csv").write_text("t,boom_joint\n0.0,0.1\n0.0,0.2\n")
     (tmp_path / "nan.csv").write_text("t,boom_joint\n0.0,0.1\n1.0,nan\n")
+    (tmp_path / "huge_cell.csv").write_text("t,boom_joint\n0.0," + "1" * 200_000 + "\n")
+    (tmp_path / "two_t.csv").write_text("t,boom_joint,t\n0.0,0.1,5.0\n1.0,0.2,6.0\n")
     return tmp_path
 
 
