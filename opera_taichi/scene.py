@@ -611,7 +611,9 @@ class CsvMotion(_Model):
     file: ExistingFile = Field(description="CSV relative to the scene file: header `t` plus `<joint>` (rad) or "
                                            "`<joint>_deg` columns (or a run's own joints.csv: its `<joint>.q` columns); t "
                                            "strictly increasing.")
-    time_offset: Seconds = Field(0.0, description="Row time t plays at simulated time t + time_offset.")
+    # bounded: far beyond any run's 3600 s, yet small enough that t + time_offset keeps the rows' times apart
+    time_offset: _num("s", ge=-1e6, le=1e6) = Field(0.0, description="Row time t plays at simulated time "
+                                                                      "t + time_offset.")
 
     @model_validator(mode="after")
     def _readable(self):

@@ -86,6 +86,8 @@ CASES = [
      ["motion.file", "huge_cell.csv", "line 2", "field limit"]),
     ("csv_two_t_columns", MACHINE + "motion: {type: csv, file: two_t.csv}\n", [],
      ["motion.file", "two_t.csv", "column 't' appears more than once"]),
+    ("csv_time_offset_huge", MACHINE + "motion: {type: csv, file: ok.csv}\n", ["--set", "motion.time_offset=-1e300"],
+     ["motion.time_offset (from --set)", ">= -1000000 and <= 1000000", "got -1e+300"]),
     ("missing_mesh", "tools: [{name: blade, mesh: blade.stl, start: [0, 0, 0]}]\n", [], ["tools.0.mesh", "blade.stl"]),
     ("tool_box_and_mesh_missing", "tools: [{name: blade, start: [0, 0, 0]}]\n", [], ["tools.0.box", "box or mesh"]),
     ("tool_names_repeat", "tools: [{name: a, box: [1, 1, 1], start: [0, 0, 0]}, "
@@ -114,6 +116,7 @@ def scene_dir(tmp_path):
     (tmp_path / "unsorted.csv").write_text("t,boom_joint\n0.0,0.1\n0.0,0.2\n")
     (tmp_path / "nan.csv").write_text("t,boom_joint\n0.0,0.1\n1.0,nan\n")
     (tmp_path / "huge_cell.csv").write_text("t,boom_joint\n0.0," + "1" * 200_000 + "\n")
+    (tmp_path / "ok.csv").write_text("t,boom_joint\n0.0,0.1\n1.0,0.2\n")
     (tmp_path / "two_t.csv").write_text("t,boom_joint,t\n0.0,0.1,5.0\n1.0,0.2,6.0\n")
     return tmp_path
 
