@@ -957,10 +957,31 @@ class _SceneLoader(yaml.SafeLoader):
             self._depth -= 1
 
 
-# PyYAML follows YAML 1.1, where an unquoted `1e-4` is a string; read it as the number it looks like (YAML 1.2).
-_SceneLoader.add_implicit_resolver("tag:yaml.org,2002:float",
-                                   re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-                                   list("-+0123456789"))
+# PyYAML follows YAML 1.1, where an unquoted `1e-4` is a string, `on`/`yes`/`no` are booleans, `010` is octal (8)
+# and `1:30` is base 60 (90). Scenes read booleans, integers and floats as YAML 1.2's core schema does (what the
+# docs promise: true | false), so those forms are strings that the schema then refuses.
+_YAML12_SCALARS = (  # (tag, pattern, first characters); int before float: the float pattern matches `10` too
+    ("tag:yaml.org,2002:bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
+    ("tag:yaml.org,2002:int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
+    ("tag:yaml.org,2002:float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)"
+                                r"|\.(?:nan|NaN|NAN)", "-+.0123456789"),
+)
+_SceneLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in {t for t, _, _ in _YAML12_SCALARS}]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _tag, _pattern, _first in _YAML12_SCALARS:
+    _SceneLoader.add_implicit_resolver(_tag, re.compile(f"^(?:{_pattern})$"), list(_first))
+
+
+def _construct_int(loader, node) -> int:
+    """YAML 1.2 integers: decimal (`010` is ten, not octal eight), 0o octal, 0x hex."""
+    text = loader.construct_scalar(node)
+    if text[:2] in ("0o", "0x"):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text, 10)
+
+
+_SceneLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
 
 
 def _check_nodes(root: yaml.Node) -> None:

@@ -106,6 +106,11 @@ CASES = [
     ("set_index_out_of_range", "soil: {}\n", ["--set", "soil.bed.3.max.2=-0.5"], ["--set soil.bed.3", "1 entries"]),
     ("set_into_scalar", "sim: {}\n", ["--set", "sim.dt.x=1"], ["--set sim.dt.x", "sim.dt is not a mapping"]),
     ("set_bad_yaml", "sim: {}\n", ["--set", "sim.duration=[1,"], ["--set sim.duration", "YAML syntax error"]),
+    # YAML 1.2: `1:30` is not 90 (base 60) and `on` is not true (YAML 1.1 forms PyYAML reads by default)
+    ("set_sexagesimal", "sim: {}\n", ["--set", "sim.duration=1:30"], ["sim.duration (from --set)", "got '1:30'"]),
+    ("sexagesimal_float", "sim: {duration: '1'}\n", ["--set", "sim.duration=1:30.5"], ["got '1:30.5'"]),
+    ("bool_on", "soil: {sleep: on}\n", [], ["soil.sleep", "expected true or false, got 'on'"]),
+    ("bool_yes", MACHINE.replace("}", ", fixed_base: yes}"), [], ["machine.fixed_base", "got 'yes'"]),
     ("set_non_finite", "sim: {}\n", ["--set", "sim.duration=.inf"], ["sim.duration (from --set)", "got inf"]),
 ]
 

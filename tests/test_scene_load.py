@@ -245,3 +245,10 @@ def test_overrides_as_a_mapping_or_as_set_strings_load_the_same_scene(tmp_path, 
     as_dict = load_scene(path, {"sim.duration": 3, "machine.base_pose.xyz": [1, 2, 0], "motion": None})
     as_sets = load_scene(path, ["sim.duration=3", "machine.base_pose.xyz=[1, 2, 0]", "motion=null"])
     assert scene_to_dict(as_dict) == scene_to_dict(as_sets) and as_dict.sim.duration == 3.0
+
+
+def test_integers_are_decimal_as_in_yaml_1_2(tmp_path):
+    """YAML 1.1 (PyYAML's default) reads `010` as octal 8; a scene means ten."""
+    scene = load_scene(_write(tmp_path, "sim: {seed: 010, duration: 5}\n"), ["sim.duration=010"])
+    assert scene.sim.seed == 10 and scene.sim.duration == 10.0
+    assert load_scene(_write(tmp_path, "sim: {seed: 0x1F}\n")).sim.seed == 31
