@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-import yaml
 import yourdfpy
 from lxml import etree
 
@@ -254,12 +253,10 @@ def _resolve_config(config, urdf_path: Path, robot_name: str, warnings: list[str
 
 
 def _read_config(path: Path) -> dict:
-    try:
-        cfg = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise UserError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot be read ({exc.strerror})") from None
+    # the scene's reader: one line for a non-UTF-8 byte or a duplicate key, and YAML 1.2 numbers (1e-3 is a number)
+    from .scene import _parse_yaml, _read_scene_text
+
+    cfg = _parse_yaml(_read_scene_text(Path(path), str(path)), str(path))
     if cfg is None:
         return {}
     if not isinstance(cfg, dict):
@@ -314,12 +311,6 @@ def _movable(joints) -> list[str]:
 
 
 def _positive(value, where: str) -> float:
-    if isinstance(value, str):
-        # PyYAML (YAML 1.1) reads 3.2e6 as a string: it wants 3.2e+6. Accept both spellings.
-        try:
-            value = float(value)
-        except ValueError:
-            pass
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise UserError(f"{where} must be a positive number, got {value!r}")
     return float(value)

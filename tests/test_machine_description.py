@@ -272,3 +272,19 @@ def test_tracks_lateral_friction_defaults_below_the_tractive_and_a_higher_one_is
     (tmp_path / "grippy.yaml").write_text(yaml.safe_dump(settings))
     desc = load_machine(urdf, config=tmp_path / "grippy.yaml")
     assert any("tracks.lateral_friction 0.8 >= tracks.friction 0.8" in w and "turn" in w for w in desc.warnings)
+
+
+def test_machine_yaml_is_read_as_a_scene_is(tmp_path):
+    """Through the scene's YAML reader: YAML 1.2 numbers, one line for a duplicate key or a non-UTF-8 byte, and a
+    quoted number is a string, refused as in a scene."""
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    config = urdf.with_name("machine.yaml")
+    config.write_text("command_latency: 1e-3\n")            # YAML 1.1 (PyYAML) read this as the string '1e-3'
+    assert load_machine(urdf).command_latency == 0.001
+    config.write_text('struck_volume: {arm: "1e3"}\n')
+    assert "struck_volume.arm must be a positive number, got '1e3'" in _one_line_error(urdf)
+    config.write_text("masses: {arm: 80}\nmasses: {arm: 90}\n")
+    assert "masses: duplicate key (lines 1 and 2)" in _one_line_error(urdf)
+    config.write_bytes("name: caf\xe9\n".encode("latin-1"))
+    message = _one_line_error(urdf)
+    assert "machine.yaml" in message and "not UTF-8" in message
