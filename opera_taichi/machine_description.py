@@ -152,9 +152,12 @@ def _read_actuators(urdf, config, actuator_overrides, warnings: list[str]):
 
 
 def _latency(value, where: str) -> float:
-    """Seconds >= 0."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise UserError(f"{where} must be a number of seconds >= 0, got {value!r}")
+    """Seconds, 0 to the bound a scene's machine.command_latency has."""
+    from .scene import MAX_COMMAND_LATENCY
+
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0 \
+            or value > MAX_COMMAND_LATENCY:
+        raise UserError(f"{where} must be a number of seconds >= 0 and <= {MAX_COMMAND_LATENCY:g}, got {value!r}")
     return float(value)
 
 
@@ -422,8 +425,9 @@ def _tracks(cfg, where) -> dict | None:
         if key == "x":
             xs = tracks["x"]
             if not isinstance(xs, list) or not xs or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                              for v in xs):
-                raise UserError(f"{where}: tracks.x must be a list of wheel positions along the base x axis (m)")
+                                                              and math.isfinite(v) for v in xs):
+                raise UserError(f"{where}: tracks.x must be a list of finite wheel positions along the base x axis "
+                                f"(m), got {xs!r}")
             out["x"] = [float(v) for v in xs]
         else:
             out[key] = _positive(tracks[key], f"{where}: tracks.{key}")

@@ -29,6 +29,7 @@ MAX_CSV_BYTES = 50 * 1024 * 1024
 # (long joint profiles belong in a motion CSV). Counted while composing, so a refused file costs < ~1 s.
 MAX_YAML_VALUES = 20_000
 MAX_YAML_DEPTH = 50
+MAX_COMMAND_LATENCY = 10.0  # s: a machine's response delay, far beyond a real one; machine.yaml has the same bound
 SOIL_PRESETS = ("sand", "dirt", "gravel", "kanto_loam", "glass_beads")
 
 
@@ -460,7 +461,7 @@ class MachineConfig(_Model):
                                         "initial_joints for other joints).")
     actuators: Annotated[dict[str, ActuatorLimits], _none_to({})] = Field(
         default_factory=dict, description="Joint name -> actuator settings overriding the machine config.")
-    command_latency: Optional[_num("s", ge=0, le=10)] = Field(
+    command_latency: Optional[_num("s", ge=0, le=MAX_COMMAND_LATENCY)] = Field(
         None, description="Dead time between a command from a ROS bridge and the machine acting on it (the real "
                           "machine's response delay); null = the machine config's `command_latency` (0 if none).")
 

@@ -288,3 +288,20 @@ def test_machine_yaml_is_read_as_a_scene_is(tmp_path):
     config.write_bytes("name: caf\xe9\n".encode("latin-1"))
     message = _one_line_error(urdf)
     assert "machine.yaml" in message and "not UTF-8" in message
+
+
+def test_track_positions_are_finite_and_latency_has_the_scene_keys_bound(tmp_path):
+    settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
+    urdf = machines_dir() / "zx120" / "zx120.urdf"
+    config = tmp_path / "machine.yaml"
+    settings["tracks"]["x"] = [float("nan"), float("inf"), -1.5]
+    config.write_text(yaml.safe_dump(settings))
+    assert "tracks.x must be a list of finite wheel positions" in _one_line_error(urdf, config=config)
+    settings["tracks"]["x"] = [1.5, 0.0, -1.5]
+    settings["command_latency"] = 5000.0                    # the scene's machine.command_latency stops at 10 s
+    config.write_text(yaml.safe_dump(settings))
+    assert "command_latency must be a number of seconds >= 0 and <= 10, got 5000.0" in _one_line_error(
+        urdf, config=config)
+    settings["command_latency"] = 10.0
+    config.write_text(yaml.safe_dump(settings))
+    assert load_machine(urdf, config=config).command_latency == 10.0
