@@ -227,7 +227,32 @@ def _parse_urdf(path: Path) -> yourdfpy.Robot:
         for role, link in (("parent", joint.parent), ("child", joint.child)):
             if link not in names:
                 raise UserError(f"{path}: joint {joint.name!r} names {role} link {link!r}, which is not defined")
+        limit = joint.limit
+        if joint.type in ("revolute", "prismatic") and limit is not None and None not in (limit.lower, limit.upper) \
+                and not (math.isfinite(limit.lower) and math.isfinite(limit.upper) and limit.lower <= limit.upper):
+            raise UserError(f"{path}: joint {joint.name!r} <limit> lower={limit.lower:g} upper={limit.upper:g}: "
+                            "expected finite numbers with lower <= upper")
+    for link in robot.links:
+        for element in [*link.visuals, *link.collisions]:
+            _check_geometry(element.geometry, link.name, path)
     return robot
+
+
+def _check_geometry(geometry, link: str, path: Path) -> None:
+    """Box, cylinder and sphere sizes: the right count of finite positive numbers (yourdfpy reads any count, and
+    trimesh then fails on them, or builds an empty shape from zeros)."""
+    if geometry is None:
+        return
+    shapes = (("box", "size", 3), ("cylinder", "radius", 1), ("cylinder", "length", 1), ("sphere", "radius", 1))
+    for shape, attribute, count in shapes:
+        element = getattr(geometry, shape)
+        if element is None:
+            continue
+        values = np.atleast_1d(np.asarray(getattr(element, attribute), float))
+        if len(values) != count or not np.all(np.isfinite(values)) or not np.all(values > 0):
+            what = f"{count} finite positive numbers" if count > 1 else "a finite positive number"
+            shown = " ".join(f"{v:g}" for v in values)
+            raise UserError(f"{path}: link {link!r} <{shape} {attribute}=\"{shown}\">: expected {what}")
 
 
 def _resolve_config(config, urdf_path: Path, robot_name: str, warnings: list[str]) -> Path | None:

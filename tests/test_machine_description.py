@@ -305,3 +305,25 @@ def test_track_positions_are_finite_and_latency_has_the_scene_keys_bound(tmp_pat
     settings["command_latency"] = 10.0
     config.write_text(yaml.safe_dump(settings))
     assert load_machine(urdf, config=config).command_latency == 10.0
+
+
+@pytest.mark.parametrize("geometry, named", [
+    ('<box size="1 1"/>', '<box size="1 1">: expected 3 finite positive numbers'),
+    ('<box size="0 0 0"/>', '<box size="0 0 0">: expected 3 finite positive numbers'),
+    ('<cylinder radius="0.1" length="-1"/>', '<cylinder length="-1">: expected a finite positive number'),
+    ('<sphere radius="nan"/>', '<sphere radius="nan">: expected a finite positive number')])
+def test_urdf_shapes_need_finite_positive_sizes(tmp_path, geometry, named):
+    """trimesh failed on a two-number box with a traceback; a zero box was taken as an empty shape."""
+    urdf = tmp_path / "shape.urdf"
+    urdf.write_text(f'<robot name="r"><link name="a"><collision><geometry>{geometry}</geometry></collision></link>'
+                    '</robot>')
+    assert f"shape.urdf: link 'a' {named}" in _one_line_error(urdf)
+
+
+@pytest.mark.parametrize("lower, upper", [("1", "-1"), ("nan", "1"), ("-1", "inf")])
+def test_urdf_joint_limits_must_be_finite_and_ordered(tmp_path, lower, upper):
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    urdf.write_text(urdf.read_text().replace('lower="-1" upper="1"', f'lower="{lower}" upper="{upper}"'))
+    with pytest.raises(UserError, match=rf"tiny.urdf: joint 'hinge' <limit> lower={lower} upper={upper}: expected "
+                                        "finite numbers with lower <= upper"):
+        joint_specs(urdf)
