@@ -74,6 +74,7 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
     root = _root_link(robot, urdf_path)
     tip_link, soil_links = _tip_and_soil_links(cfg, where, links, children, root, warnings,
                                                from_config=bool(config_path))
+    _check_tip_is_moved(tip_link, "tip_link" in cfg, where, joints, list(actuators), urdf_path)
     tracks = _tracks(cfg, where)
     if tracks is not None and tracks["lateral_friction"] >= tracks["friction"]:
         warnings.append(f"{where}: tracks.lateral_friction {tracks['lateral_friction']:g} >= tracks.friction "
@@ -422,6 +423,22 @@ def _tip_and_soil_links(cfg, where, links, children, root, warnings, from_config
     elif not from_config:
         warnings.append(f"defaults: tip_link={tip}, soil_links={soil}")
     return tip, soil
+
+
+def _check_tip_is_moved(tip, from_config, where, joints, actuated, urdf_path) -> None:
+    """The tip must hang below an actuated joint: the kinematics (a bucket-tip path, the summary's tip) follow the
+    joints that move it."""
+    parent = {joint.child: joint for joint in joints.values()}
+    name = tip
+    while name in parent:
+        if parent[name].name in actuated:
+            return
+        name = parent[name].parent
+    moved_by = f"(actuated joints: {', '.join(actuated) or 'none'})"
+    if from_config:
+        raise UserError(f"{where}: tip_link {tip!r}: no actuated joint moves this link {moved_by}")
+    raise UserError(f"{urdf_path}: no actuated joint moves link {tip!r}, the end of its longest chain and so the "
+                    f"default tip {moved_by}; name the tip in a machine.yaml's tip_link")
 
 
 def _longest_chain(root, children) -> list[str]:

@@ -327,3 +327,19 @@ def test_urdf_joint_limits_must_be_finite_and_ordered(tmp_path, lower, upper):
     with pytest.raises(UserError, match=rf"tiny.urdf: joint 'hinge' <limit> lower={lower} upper={upper}: expected "
                                         "finite numbers with lower <= upper"):
         joint_specs(urdf)
+
+
+def test_a_tip_no_actuated_joint_moves_is_named(tmp_path):
+    """Kinematics failed on it with a ValueError traceback when the model was built."""
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    # a sensor on a longer fixed chain off the base becomes the default tip
+    urdf.write_text(urdf.read_text().replace('<gazebo', '<joint name="m" type="fixed"><parent link="base"/>'
+                                             '<child link="mast"/></joint><link name="mast"/><joint name="s" '
+                                             'type="fixed"><parent link="mast"/><child link="sensor"/></joint>'
+                                             '<link name="sensor"/><gazebo'))
+    message = _one_line_error(urdf)
+    assert "tiny.urdf: no actuated joint moves link 'sensor'" in message and "(actuated joints: hinge)" in message
+    (urdf.parent / "machine.yaml").write_text("tip_link: mast\n")
+    assert "machine.yaml: tip_link 'mast': no actuated joint moves this link" in _one_line_error(urdf)
+    (urdf.parent / "machine.yaml").write_text("tip_link: arm\n")
+    assert load_machine(urdf).tip_link == "arm"
