@@ -640,7 +640,13 @@ def _is_placeholder(inertial) -> bool:
 def _fix_masses(robot, masses, meshes: _MeshCache, urdf_path, config_path, warnings) -> None:
     # only links with collision geometry are machine parts; a frame marker (OPERA's 1 g bucket_end_link) is not
     placeholders = [link for link in robot.links if link.collisions and _is_placeholder(link.inertial)]
-    found = sorted({f"{link.inertial.mass:g}" for link in placeholders if link.inertial is not None}, key=float)
+    found = sorted({f"{link.inertial.mass:g}" for link in placeholders
+                    if link.inertial is not None and link.inertial.mass is not None}, key=float)
+    # what stands in for the masses: the placeholder figures, and/or links without any (no <inertial>)
+    stand_ins = [f"{', '.join(found)} kg"] if found else []
+    if any(link.inertial is None or link.inertial.mass is None for link in placeholders):
+        stand_ins.append("no <inertial>")
+    stand_ins = "; ".join(stand_ins)
     replaced, kept = [], []
     for link in robot.links:
         if link.name not in masses:
@@ -665,10 +671,10 @@ def _fix_masses(robot, masses, meshes: _MeshCache, urdf_path, config_path, warni
             warnings.append(f"{urdf_path.name}: mass of {link.name} {old.mass:g} kg replaced by {mass:g} kg "
                             f"from {config_path.name}")
     if replaced:
-        warnings.append(f"placeholder masses ({', '.join(found)} kg) in {urdf_path}; replaced from "
+        warnings.append(f"placeholder masses ({stand_ins}) in {urdf_path}; replaced from "
                         f"{config_path.name} with inertia from the link meshes: {', '.join(replaced)}")
     if kept:
-        warnings.append(f"placeholder masses ({', '.join(found)} kg) in {urdf_path} kept for {', '.join(kept)}: "
+        warnings.append(f"placeholder masses ({stand_ins}) in {urdf_path} kept for {', '.join(kept)}: "
                         "no masses for them in a machine config, so the dynamics of those links are wrong")
 
 

@@ -343,3 +343,15 @@ def test_a_tip_no_actuated_joint_moves_is_named(tmp_path):
     assert "machine.yaml: tip_link 'mast': no actuated joint moves this link" in _one_line_error(urdf)
     (urdf.parent / "machine.yaml").write_text("tip_link: arm\n")
     assert load_machine(urdf).tip_link == "arm"
+
+
+def test_links_without_inertial_are_said_as_such(tmp_path):
+    """The warning printed an empty list of masses, "placeholder masses ( kg)", for links without <inertial>."""
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    text = urdf.read_text()
+    urdf.write_text(text[:text.index("<inertial>")] + text[text.index("</inertial>") + len("</inertial>"):])
+    kept = [w for w in load_machine(urdf).warnings if w.startswith("placeholder masses")]
+    assert len(kept) == 1 and kept[0].startswith("placeholder masses (no <inertial>) in ") and "kept for arm" in kept[0]
+    (urdf.parent / "machine.yaml").write_text("masses: {arm: 80}\n")
+    replaced = [w for w in load_machine(urdf).warnings if w.startswith("placeholder masses")]
+    assert len(replaced) == 1 and replaced[0].startswith("placeholder masses (no <inertial>) in ")
