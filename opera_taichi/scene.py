@@ -12,7 +12,7 @@ import json
 import math
 import re
 from datetime import datetime
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Annotated, Any, Literal, Optional, Union, get_args, get_origin
 
 import yaml
@@ -1085,8 +1085,23 @@ def _read_scene_text(path: Path, label: str) -> str:
 
 
 # ----------------------------------------------------------------------------- --set overrides
-def _apply_override(data: dict, text: str, label: str) -> str:
-    """Applies one `key.path=value`; returns the dotted key."""
+def _plain(value):
+    """A Python API override as the data YAML would give: numpy scalars and arrays as numbers and lists, paths as
+    strings (a float('nan') stays a float, so it is refused as the number it is)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, PurePath):
+        return str(value)
+    if type(value).__module__ == "numpy" and hasattr(value, "tolist"):
+        return _plain(value.tolist())
+    return value
+
+
+def _apply_override(data: dict, text: str, label: str, value: Any = ...) -> str:
+    """Applies one `key.path=value` (or `key.path=` with the value already read, from the Python API); returns the
+    dotted key."""
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not key:
@@ -1094,7 +1109,7 @@ def _apply_override(data: dict, text: str, label: str) -> str:
     parts = key.split(".")
     if any(not p for p in parts):
         raise UserError(_one_line(f"{label}: --set {key}: empty key component"))
-    value = _fresh_copy(_parse_yaml(raw, f"{label}: --set {key}"))
+    value = _fresh_copy(_parse_yaml(raw, f"{label}: --set {key}") if value is ... else _plain(value))
     node, annotation = data, Scene
     for i, part in enumerate(parts):
         here = ".".join(parts[:i + 1])
@@ -1165,8 +1180,10 @@ def load_scene(path: str | Path, overrides: list[str] | tuple[str, ...] | dict =
 
     Every problem a user can cause raises errors.UserError with one line naming the file and the key.
     """
-    if isinstance(overrides, dict):  # JSON is YAML: the values keep their types
-        overrides = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
+    # a mapping's values are used as given (not written out and read back: a Path or a numpy number is no JSON, and
+    # JSON's NaN would read back as a string)
+    items = [(f"{k}=", v) for k, v in overrides.items()] if isinstance(overrides, dict) else \
+        [(text, ...) for text in overrides]
     label = str(path)
     path = Path(path)
     text = _read_scene_text(path, label)
@@ -1176,7 +1193,7 @@ def load_scene(path: str | Path, overrides: list[str] | tuple[str, ...] | dict =
     if not isinstance(data, dict):
         raise UserError(_one_line(f"{label}: expected a mapping of scene keys ({', '.join(_user_keys(Scene))}), "
                                   f"got {_show(data)}"))
-    overridden = [_apply_override(data, item, label) for item in overrides]
+    overridden = [_apply_override(data, text, label, value) for text, value in items]
     if "source" in data:
         raise UserError(f"{label}: source: unknown key; allowed: {', '.join(_user_keys(Scene))}")
     source = path.resolve()
