@@ -288,7 +288,8 @@ def _strictly_increasing(waypoints: list, prefix: str = "waypoints"):
 class SimConfig(_Model):
     """Time stepping and backend."""
 
-    duration: _num("s", gt=0, le=3600) = Field(20.0, description="Simulated time to run.")
+    duration: _num("s", gt=0, le=3600) = Field(20.0, description="Simulated time to run, in whole steps of dt (a "
+                                                                "remainder takes one more step).")
     dt: _num("s", ge=1e-5, le=0.01) = Field(0.001, description="Rigid-body (PyBullet) step.")
     soil_dt: Optional[_num("s", gt=0)] = Field(
         None, description="Soil substep; null = from the soil's stability limit. Must be <= dt; a value "
