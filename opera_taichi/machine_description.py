@@ -29,6 +29,8 @@ CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joi
                "struck_volume", "command_latency")
 ACTUATOR_KEYS = ("max_speed", "max_torque", "gain")
 TRACK_KEYS = ("wheel_radius", "wheel_mass", "x", "gauge", "friction", "max_wheel_torque")
+# optional: lateral_friction (below); max_speed, the travel speed (m/s) the tracks' motors reach, null = not capped
+TRACK_OPTIONAL_KEYS = ("lateral_friction", "max_speed")
 # optional: the ground's resistance to sideways slip of a track (opera_taichi/tracks.py); below the tractive friction,
 # or the machine cannot turn on the spot
 LATERAL_FRICTION_SHARE = 0.6   # default lateral_friction / friction
@@ -80,6 +82,8 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
         warnings.append(f"{where}: tracks.lateral_friction {tracks['lateral_friction']:g} >= tracks.friction "
                         f"{tracks['friction']:g}: a machine on these tracks can hardly turn on the spot (the ground's "
                         f"grip across a track is usually 0.6-0.8 of its grip along it)")
+    if tracks is not None and tracks["max_speed"] is None:
+        warnings.append(f"{where}: no tracks.max_speed (the machine's travel speed, m/s): track speeds are not capped")
     masses = _masses(cfg, where, links)
 
     meshes = _MeshCache(urdf_path)
@@ -456,10 +460,10 @@ def _tracks(cfg, where) -> dict | None:
         return None
     if not isinstance(tracks, dict):
         raise UserError(f"{where}: tracks must be a mapping with {', '.join(TRACK_KEYS)}")
-    unknown = [key for key in tracks if key not in TRACK_KEYS + ("lateral_friction",)]
+    unknown = [key for key in tracks if key not in TRACK_KEYS + TRACK_OPTIONAL_KEYS]
     if unknown:
         raise UserError(f"{where}: tracks.{unknown[0]}: unknown key (allowed: {', '.join(TRACK_KEYS)}, "
-                        f"lateral_friction)")
+                        f"{', '.join(TRACK_OPTIONAL_KEYS)})")
     out = {}
     for key in TRACK_KEYS:
         if key not in tracks:
@@ -475,6 +479,7 @@ def _tracks(cfg, where) -> dict | None:
             out[key] = _positive(tracks[key], f"{where}: tracks.{key}")
     out["lateral_friction"] = _positive(tracks["lateral_friction"], f"{where}: tracks.lateral_friction") \
         if "lateral_friction" in tracks else LATERAL_FRICTION_SHARE * out["friction"]
+    out["max_speed"] = _positive(tracks["max_speed"], f"{where}: tracks.max_speed") if "max_speed" in tracks else None
     return out
 
 

@@ -355,3 +355,16 @@ def test_links_without_inertial_are_said_as_such(tmp_path):
     (urdf.parent / "machine.yaml").write_text("masses: {arm: 80}\n")
     replaced = [w for w in load_machine(urdf).warnings if w.startswith("placeholder masses")]
     assert len(replaced) == 1 and replaced[0].startswith("placeholder masses (no <inertial>) in ")
+
+
+def test_track_max_speed_is_read_checked_and_its_absence_said(tmp_path):
+    settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
+    urdf = machines_dir() / "zx120" / "zx120.urdf"
+    config = tmp_path / "machine.yaml"
+    settings["tracks"]["max_speed"] = 0
+    config.write_text(yaml.safe_dump(settings))
+    assert "tracks.max_speed must be a positive number, got 0" in _one_line_error(urdf, config=config)
+    del settings["tracks"]["max_speed"]
+    config.write_text(yaml.safe_dump(settings))
+    desc = load_machine(urdf, config=config)
+    assert desc.tracks["max_speed"] is None and any("no tracks.max_speed" in w for w in desc.warnings)
