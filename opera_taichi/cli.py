@@ -6,6 +6,7 @@ Exit codes: 0 done, 1 a bug (traceback), 2 bad input (one line), 3 the simulatio
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -45,8 +46,9 @@ def _cmd_validate(args) -> int:
 def _cmd_run(args) -> int:
     from . import runner
 
-    if args.checkpoint_every is not None and not (args.checkpoint_every > 0):
-        raise UserError(f"--checkpoint-every: expected a positive number of simulated seconds, got "
+    # finite: the checkpoint observer's interval is 1/rate, and inf would make its rate 0
+    if args.checkpoint_every is not None and not (math.isfinite(args.checkpoint_every) and args.checkpoint_every > 0):
+        raise UserError(f"--checkpoint-every: expected a finite positive number of simulated seconds, got "
                         f"{args.checkpoint_every:g}")
     if args.resume is not None:
         if args.scene is not None or args.set or args.out is not None or args.overwrite:
@@ -107,8 +109,9 @@ def _view_parts(scene, args, controller, observers):
     from .model import machine_entries
     from .viewer.live import LiveView, ViewerController
 
-    if args.view_rate is not None and not args.view_rate > 0:
-        raise UserError(f"--view-rate: expected a positive number of frames per second, got {args.view_rate:g}")
+    # finite: the view's frame period is 1/rate
+    if args.view_rate is not None and not (math.isfinite(args.view_rate) and args.view_rate > 0):
+        raise UserError(f"--view-rate: expected a finite positive number of frames per second, got {args.view_rate:g}")
     scripted = any(motion is not None for _, _, motion in machine_entries(scene))
     teleop = controller is None and not scripted
     view = LiveView(host=args.view_host or "127.0.0.1", port=8080 if args.view_port is None else args.view_port,

@@ -94,6 +94,7 @@ class BulletMachine:
         self._hold = False
         self._speed_cmd = np.zeros(n)        # the motors' speed commands of the last step, rad/s
         self._clip_warned: set[str] = set()
+        self._track_clip_warned = False   # a track speed beyond tracks.max_speed is said once
         self._pending_wrenches: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._link_cache: dict[int, tuple] = {}  # link states of the current pose (emptied when the world moves)
 
@@ -224,10 +225,21 @@ class BulletMachine:
             self._warn(text)
 
     def set_track_speeds(self, left: float, right: float) -> None:
-        """Track surface speeds (m/s, positive drives forward)."""
+        """Track surface speeds (m/s, positive drives forward). Each side is capped at the machine's travel speed
+        (machine.yaml tracks.max_speed), as a travel motor's flow caps it: a faster command is clipped, not refused
+        (said once), so a turn asked beyond the cap turns tighter than asked."""
         if self.fixed_base:
             raise UserError("set_track_speeds: the machine has a fixed base (set fixed_base false to drive)")
-        self._wheel_speed = (float(left), float(right))
+        cap = self.desc.tracks.get("max_speed")
+        speeds = (float(left), float(right))
+        if cap is not None:
+            capped = tuple(min(max(v, -cap), cap) for v in speeds)
+            if capped != speeds and not self._track_clip_warned and all(math.isfinite(v) for v in speeds):
+                self._track_clip_warned = True
+                self._say(f"machine {self.name}: track speeds ({speeds[0]:g}, {speeds[1]:g}) m/s beyond its travel "
+                          f"speed {cap:g} m/s (tracks.max_speed); capped (said once)")
+            speeds = capped
+        self._wheel_speed = speeds
 
     def apply_link_wrench(self, link: str, force, torque) -> None:
         """World-frame force at the link frame origin plus world-frame torque, for the next step() only."""

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-import yaml
 import yourdfpy
 from lxml import etree
 
@@ -30,6 +29,8 @@ CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joi
                "struck_volume", "command_latency")
 ACTUATOR_KEYS = ("max_speed", "max_torque", "gain")
 TRACK_KEYS = ("wheel_radius", "wheel_mass", "x", "gauge", "friction", "max_wheel_torque")
+# optional: lateral_friction (below); max_speed, the travel speed (m/s) the tracks' motors reach, null = not capped
+TRACK_OPTIONAL_KEYS = ("lateral_friction", "max_speed")
 # optional: the ground's resistance to sideways slip of a track (opera_taichi/tracks.py); below the tractive friction,
 # or the machine cannot turn on the spot
 LATERAL_FRICTION_SHARE = 0.6   # default lateral_friction / friction
@@ -75,11 +76,14 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
     root = _root_link(robot, urdf_path)
     tip_link, soil_links = _tip_and_soil_links(cfg, where, links, children, root, warnings,
                                                from_config=bool(config_path))
+    _check_tip_is_moved(tip_link, "tip_link" in cfg, where, joints, list(actuators), urdf_path)
     tracks = _tracks(cfg, where)
     if tracks is not None and tracks["lateral_friction"] >= tracks["friction"]:
         warnings.append(f"{where}: tracks.lateral_friction {tracks['lateral_friction']:g} >= tracks.friction "
                         f"{tracks['friction']:g}: a machine on these tracks can hardly turn on the spot (the ground's "
                         f"grip across a track is usually 0.6-0.8 of its grip along it)")
+    if tracks is not None and tracks["max_speed"] is None:
+        warnings.append(f"{where}: no tracks.max_speed (the machine's travel speed, m/s): track speeds are not capped")
     masses = _masses(cfg, where, links)
 
     meshes = _MeshCache(urdf_path)
@@ -153,9 +157,12 @@ def _read_actuators(urdf, config, actuator_overrides, warnings: list[str]):
 
 
 def _latency(value, where: str) -> float:
-    """Seconds >= 0."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise UserError(f"{where} must be a number of seconds >= 0, got {value!r}")
+    """Seconds, 0 to the bound a scene's machine.command_latency has."""
+    from .scene import MAX_COMMAND_LATENCY
+
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0 \
+            or value > MAX_COMMAND_LATENCY:
+        raise UserError(f"{where} must be a number of seconds >= 0 and <= {MAX_COMMAND_LATENCY:g}, got {value!r}")
     return float(value)
 
 
@@ -225,7 +232,32 @@ def _parse_urdf(path: Path) -> yourdfpy.Robot:
         for role, link in (("parent", joint.parent), ("child", joint.child)):
             if link not in names:
                 raise UserError(f"{path}: joint {joint.name!r} names {role} link {link!r}, which is not defined")
+        limit = joint.limit
+        if joint.type in ("revolute", "prismatic") and limit is not None and None not in (limit.lower, limit.upper) \
+                and not (math.isfinite(limit.lower) and math.isfinite(limit.upper) and limit.lower <= limit.upper):
+            raise UserError(f"{path}: joint {joint.name!r} <limit> lower={limit.lower:g} upper={limit.upper:g}: "
+                            "expected finite numbers with lower <= upper")
+    for link in robot.links:
+        for element in [*link.visuals, *link.collisions]:
+            _check_geometry(element.geometry, link.name, path)
     return robot
+
+
+def _check_geometry(geometry, link: str, path: Path) -> None:
+    """Box, cylinder and sphere sizes: the right count of finite positive numbers (yourdfpy reads any count, and
+    trimesh then fails on them, or builds an empty shape from zeros)."""
+    if geometry is None:
+        return
+    shapes = (("box", "size", 3), ("cylinder", "radius", 1), ("cylinder", "length", 1), ("sphere", "radius", 1))
+    for shape, attribute, count in shapes:
+        element = getattr(geometry, shape)
+        if element is None:
+            continue
+        values = np.atleast_1d(np.asarray(getattr(element, attribute), float))
+        if len(values) != count or not np.all(np.isfinite(values)) or not np.all(values > 0):
+            what = f"{count} finite positive numbers" if count > 1 else "a finite positive number"
+            shown = " ".join(f"{v:g}" for v in values)
+            raise UserError(f"{path}: link {link!r} <{shape} {attribute}=\"{shown}\">: expected {what}")
 
 
 def _resolve_config(config, urdf_path: Path, robot_name: str, warnings: list[str]) -> Path | None:
@@ -254,12 +286,10 @@ def _resolve_config(config, urdf_path: Path, robot_name: str, warnings: list[str
 
 
 def _read_config(path: Path) -> dict:
-    try:
-        cfg = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise UserError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot be read ({exc.strerror})") from None
+    # the scene's reader: one line for a non-UTF-8 byte or a duplicate key, and YAML 1.2 numbers (1e-3 is a number)
+    from .scene import _parse_yaml, _read_scene_text
+
+    cfg = _parse_yaml(_read_scene_text(Path(path), str(path)), str(path))
     if cfg is None:
         return {}
     if not isinstance(cfg, dict):
@@ -314,12 +344,6 @@ def _movable(joints) -> list[str]:
 
 
 def _positive(value, where: str) -> float:
-    if isinstance(value, str):
-        # PyYAML (YAML 1.1) reads 3.2e6 as a string: it wants 3.2e+6. Accept both spellings.
-        try:
-            value = float(value)
-        except ValueError:
-            pass
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise UserError(f"{where} must be a positive number, got {value!r}")
     return float(value)
@@ -405,6 +429,22 @@ def _tip_and_soil_links(cfg, where, links, children, root, warnings, from_config
     return tip, soil
 
 
+def _check_tip_is_moved(tip, from_config, where, joints, actuated, urdf_path) -> None:
+    """The tip must hang below an actuated joint: the kinematics (a bucket-tip path, the summary's tip) follow the
+    joints that move it."""
+    parent = {joint.child: joint for joint in joints.values()}
+    name = tip
+    while name in parent:
+        if parent[name].name in actuated:
+            return
+        name = parent[name].parent
+    moved_by = f"(actuated joints: {', '.join(actuated) or 'none'})"
+    if from_config:
+        raise UserError(f"{where}: tip_link {tip!r}: no actuated joint moves this link {moved_by}")
+    raise UserError(f"{urdf_path}: no actuated joint moves link {tip!r}, the end of its longest chain and so the "
+                    f"default tip {moved_by}; name the tip in a machine.yaml's tip_link")
+
+
 def _longest_chain(root, children) -> list[str]:
     best = [root]
     for joint in children[root]:
@@ -420,10 +460,10 @@ def _tracks(cfg, where) -> dict | None:
         return None
     if not isinstance(tracks, dict):
         raise UserError(f"{where}: tracks must be a mapping with {', '.join(TRACK_KEYS)}")
-    unknown = [key for key in tracks if key not in TRACK_KEYS + ("lateral_friction",)]
+    unknown = [key for key in tracks if key not in TRACK_KEYS + TRACK_OPTIONAL_KEYS]
     if unknown:
         raise UserError(f"{where}: tracks.{unknown[0]}: unknown key (allowed: {', '.join(TRACK_KEYS)}, "
-                        f"lateral_friction)")
+                        f"{', '.join(TRACK_OPTIONAL_KEYS)})")
     out = {}
     for key in TRACK_KEYS:
         if key not in tracks:
@@ -431,13 +471,15 @@ def _tracks(cfg, where) -> dict | None:
         if key == "x":
             xs = tracks["x"]
             if not isinstance(xs, list) or not xs or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                              for v in xs):
-                raise UserError(f"{where}: tracks.x must be a list of wheel positions along the base x axis (m)")
+                                                              and math.isfinite(v) for v in xs):
+                raise UserError(f"{where}: tracks.x must be a list of finite wheel positions along the base x axis "
+                                f"(m), got {xs!r}")
             out["x"] = [float(v) for v in xs]
         else:
             out[key] = _positive(tracks[key], f"{where}: tracks.{key}")
     out["lateral_friction"] = _positive(tracks["lateral_friction"], f"{where}: tracks.lateral_friction") \
         if "lateral_friction" in tracks else LATERAL_FRICTION_SHARE * out["friction"]
+    out["max_speed"] = _positive(tracks["max_speed"], f"{where}: tracks.max_speed") if "max_speed" in tracks else None
     return out
 
 
@@ -603,7 +645,13 @@ def _is_placeholder(inertial) -> bool:
 def _fix_masses(robot, masses, meshes: _MeshCache, urdf_path, config_path, warnings) -> None:
     # only links with collision geometry are machine parts; a frame marker (OPERA's 1 g bucket_end_link) is not
     placeholders = [link for link in robot.links if link.collisions and _is_placeholder(link.inertial)]
-    found = sorted({f"{link.inertial.mass:g}" for link in placeholders if link.inertial is not None}, key=float)
+    found = sorted({f"{link.inertial.mass:g}" for link in placeholders
+                    if link.inertial is not None and link.inertial.mass is not None}, key=float)
+    # what stands in for the masses: the placeholder figures, and/or links without any (no <inertial>)
+    stand_ins = [f"{', '.join(found)} kg"] if found else []
+    if any(link.inertial is None or link.inertial.mass is None for link in placeholders):
+        stand_ins.append("no <inertial>")
+    stand_ins = "; ".join(stand_ins)
     replaced, kept = [], []
     for link in robot.links:
         if link.name not in masses:
@@ -628,10 +676,10 @@ def _fix_masses(robot, masses, meshes: _MeshCache, urdf_path, config_path, warni
             warnings.append(f"{urdf_path.name}: mass of {link.name} {old.mass:g} kg replaced by {mass:g} kg "
                             f"from {config_path.name}")
     if replaced:
-        warnings.append(f"placeholder masses ({', '.join(found)} kg) in {urdf_path}; replaced from "
+        warnings.append(f"placeholder masses ({stand_ins}) in {urdf_path}; replaced from "
                         f"{config_path.name} with inertia from the link meshes: {', '.join(replaced)}")
     if kept:
-        warnings.append(f"placeholder masses ({', '.join(found)} kg) in {urdf_path} kept for {', '.join(kept)}: "
+        warnings.append(f"placeholder masses ({stand_ins}) in {urdf_path} kept for {', '.join(kept)}: "
                         "no masses for them in a machine config, so the dynamics of those links are wrong")
 
 

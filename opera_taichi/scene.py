@@ -12,7 +12,7 @@ import json
 import math
 import re
 from datetime import datetime
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Annotated, Any, Literal, Optional, Union, get_args, get_origin
 
 import yaml
@@ -29,6 +29,7 @@ MAX_CSV_BYTES = 50 * 1024 * 1024
 # (long joint profiles belong in a motion CSV). Counted while composing, so a refused file costs < ~1 s.
 MAX_YAML_VALUES = 20_000
 MAX_YAML_DEPTH = 50
+MAX_COMMAND_LATENCY = 10.0  # s: a machine's response delay, far beyond a real one; machine.yaml has the same bound
 SOIL_PRESETS = ("sand", "dirt", "gravel", "kanto_loam", "glass_beads")
 
 
@@ -287,7 +288,8 @@ def _strictly_increasing(waypoints: list, prefix: str = "waypoints"):
 class SimConfig(_Model):
     """Time stepping and backend."""
 
-    duration: _num("s", gt=0, le=3600) = Field(20.0, description="Simulated time to run.")
+    duration: _num("s", gt=0, le=3600) = Field(20.0, description="Simulated time to run, in whole steps of dt (a "
+                                                                "remainder takes one more step).")
     dt: _num("s", ge=1e-5, le=0.01) = Field(0.001, description="Rigid-body (PyBullet) step.")
     soil_dt: Optional[_num("s", gt=0)] = Field(
         None, description="Soil substep; null = from the soil's stability limit. Must be <= dt; a value "
@@ -460,7 +462,7 @@ class MachineConfig(_Model):
                                         "initial_joints for other joints).")
     actuators: Annotated[dict[str, ActuatorLimits], _none_to({})] = Field(
         default_factory=dict, description="Joint name -> actuator settings overriding the machine config.")
-    command_latency: Optional[_num("s", ge=0, le=10)] = Field(
+    command_latency: Optional[_num("s", ge=0, le=MAX_COMMAND_LATENCY)] = Field(
         None, description="Dead time between a command from a ROS bridge and the machine acting on it (the real "
                           "machine's response delay); null = the machine config's `command_latency` (0 if none).")
 
@@ -551,12 +553,19 @@ def read_motion_csv(path: Path) -> tuple[list[float], dict[str, list[float]]]:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise CsvProblem(f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})") from None
-    rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+    reader = csv.reader(text.splitlines())
+    try:
+        rows = [row for row in reader if row and any(c.strip() for c in row)]
+    except csv.Error as exc:  # e.g. a cell beyond the csv module's field size limit (128 KiB)
+        raise CsvProblem(f"line {reader.line_num}: not readable as CSV ({exc})") from None
     if not rows:
         raise CsvProblem("empty; expected a header `t,<joint>,...` and at least one row")
     header = [c.strip() for c in rows[0]]
     if "t" not in header:
         raise CsvProblem(f"header has no `t` column, got {_show(header)}")
+    repeated = next((name for name in header if header.count(name) > 1), None)
+    if repeated is not None:  # which of two `t` (or two joint) columns is meant cannot be told
+        raise CsvProblem(f"header: column {repeated!r} appears more than once")
     joints: dict[str, tuple[int, float]] = {}
     # a run's own joints.csv: `<joint>.q` are the positions; its other `<joint>.*` columns are not angles
     recorded = any(name.endswith(".q") for name in header)
@@ -604,7 +613,9 @@ class CsvMotion(_Model):
     file: ExistingFile = Field(description="CSV relative to the scene file: header `t` plus `<joint>` (rad) or "
                                            "`<joint>_deg` columns (or a run's own joints.csv: its `<joint>.q` columns); t "
                                            "strictly increasing.")
-    time_offset: Seconds = Field(0.0, description="Row time t plays at simulated time t + time_offset.")
+    # bounded: far beyond any run's 3600 s, yet small enough that t + time_offset keeps the rows' times apart
+    time_offset: _num("s", ge=-1e6, le=1e6) = Field(0.0, description="Row time t plays at simulated time "
+                                                                      "t + time_offset.")
 
     @model_validator(mode="after")
     def _readable(self):
@@ -948,10 +959,31 @@ class _SceneLoader(yaml.SafeLoader):
             self._depth -= 1
 
 
-# PyYAML follows YAML 1.1, where an unquoted `1e-4` is a string; read it as the number it looks like (YAML 1.2).
-_SceneLoader.add_implicit_resolver("tag:yaml.org,2002:float",
-                                   re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-                                   list("-+0123456789"))
+# PyYAML follows YAML 1.1, where an unquoted `1e-4` is a string, `on`/`yes`/`no` are booleans, `010` is octal (8)
+# and `1:30` is base 60 (90). Scenes read booleans, integers and floats as YAML 1.2's core schema does (what the
+# docs promise: true | false), so those forms are strings that the schema then refuses.
+_YAML12_SCALARS = (  # (tag, pattern, first characters); int before float: the float pattern matches `10` too
+    ("tag:yaml.org,2002:bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
+    ("tag:yaml.org,2002:int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
+    ("tag:yaml.org,2002:float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)"
+                                r"|\.(?:nan|NaN|NAN)", "-+.0123456789"),
+)
+_SceneLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in {t for t, _, _ in _YAML12_SCALARS}]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _tag, _pattern, _first in _YAML12_SCALARS:
+    _SceneLoader.add_implicit_resolver(_tag, re.compile(f"^(?:{_pattern})$"), list(_first))
+
+
+def _construct_int(loader, node) -> int:
+    """YAML 1.2 integers: decimal (`010` is ten, not octal eight), 0o octal, 0x hex."""
+    text = loader.construct_scalar(node)
+    if text[:2] in ("0o", "0x"):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text, 10)
+
+
+_SceneLoader.add_constructor("tag:yaml.org,2002:int", _construct_int)
 
 
 def _check_nodes(root: yaml.Node) -> None:
@@ -1054,8 +1086,23 @@ def _read_scene_text(path: Path, label: str) -> str:
 
 
 # ----------------------------------------------------------------------------- --set overrides
-def _apply_override(data: dict, text: str, label: str) -> str:
-    """Applies one `key.path=value`; returns the dotted key."""
+def _plain(value):
+    """A Python API override as the data YAML would give: numpy scalars and arrays as numbers and lists, paths as
+    strings (a float('nan') stays a float, so it is refused as the number it is)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, PurePath):
+        return str(value)
+    if type(value).__module__ == "numpy" and hasattr(value, "tolist"):
+        return _plain(value.tolist())
+    return value
+
+
+def _apply_override(data: dict, text: str, label: str, value: Any = ...) -> str:
+    """Applies one `key.path=value` (or `key.path=` with the value already read, from the Python API); returns the
+    dotted key."""
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not key:
@@ -1063,7 +1110,7 @@ def _apply_override(data: dict, text: str, label: str) -> str:
     parts = key.split(".")
     if any(not p for p in parts):
         raise UserError(_one_line(f"{label}: --set {key}: empty key component"))
-    value = _fresh_copy(_parse_yaml(raw, f"{label}: --set {key}"))
+    value = _fresh_copy(_parse_yaml(raw, f"{label}: --set {key}") if value is ... else _plain(value))
     node, annotation = data, Scene
     for i, part in enumerate(parts):
         here = ".".join(parts[:i + 1])
@@ -1134,8 +1181,10 @@ def load_scene(path: str | Path, overrides: list[str] | tuple[str, ...] | dict =
 
     Every problem a user can cause raises errors.UserError with one line naming the file and the key.
     """
-    if isinstance(overrides, dict):  # JSON is YAML: the values keep their types
-        overrides = [f"{k}={json.dumps(v)}" for k, v in overrides.items()]
+    # a mapping's values are used as given (not written out and read back: a Path or a numpy number is no JSON, and
+    # JSON's NaN would read back as a string)
+    items = [(f"{k}=", v) for k, v in overrides.items()] if isinstance(overrides, dict) else \
+        [(text, ...) for text in overrides]
     label = str(path)
     path = Path(path)
     text = _read_scene_text(path, label)
@@ -1145,7 +1194,7 @@ def load_scene(path: str | Path, overrides: list[str] | tuple[str, ...] | dict =
     if not isinstance(data, dict):
         raise UserError(_one_line(f"{label}: expected a mapping of scene keys ({', '.join(_user_keys(Scene))}), "
                                   f"got {_show(data)}"))
-    overridden = [_apply_override(data, item, label) for item in overrides]
+    overridden = [_apply_override(data, text, label, value) for text, value in items]
     if "source" in data:
         raise UserError(f"{label}: source: unknown key; allowed: {', '.join(_user_keys(Scene))}")
     source = path.resolve()

@@ -82,6 +82,12 @@ CASES = [
     ("csv_unsorted", MACHINE + "motion: {type: csv, file: unsorted.csv}\n", [],
      ["motion.file", "unsorted.csv", "line 3", "strictly increasing"]),
     ("csv_nan", MACHINE + "motion: {type: csv, file: nan.csv}\n", [], ["motion.file", "nan.csv", "finite"]),
+    ("csv_huge_cell", MACHINE + "motion: {type: csv, file: huge_cell.csv}\n", [],
+     ["motion.file", "huge_cell.csv", "line 2", "field limit"]),
+    ("csv_two_t_columns", MACHINE + "motion: {type: csv, file: two_t.csv}\n", [],
+     ["motion.file", "two_t.csv", "column 't' appears more than once"]),
+    ("csv_time_offset_huge", MACHINE + "motion: {type: csv, file: ok.csv}\n", ["--set", "motion.time_offset=-1e300"],
+     ["motion.time_offset (from --set)", ">= -1000000 and <= 1000000", "got -1e+300"]),
     ("missing_mesh", "tools: [{name: blade, mesh: blade.stl, start: [0, 0, 0]}]\n", [], ["tools.0.mesh", "blade.stl"]),
     ("tool_box_and_mesh_missing", "tools: [{name: blade, start: [0, 0, 0]}]\n", [], ["tools.0.box", "box or mesh"]),
     ("tool_names_repeat", "tools: [{name: a, box: [1, 1, 1], start: [0, 0, 0]}, "
@@ -100,6 +106,11 @@ CASES = [
     ("set_index_out_of_range", "soil: {}\n", ["--set", "soil.bed.3.max.2=-0.5"], ["--set soil.bed.3", "1 entries"]),
     ("set_into_scalar", "sim: {}\n", ["--set", "sim.dt.x=1"], ["--set sim.dt.x", "sim.dt is not a mapping"]),
     ("set_bad_yaml", "sim: {}\n", ["--set", "sim.duration=[1,"], ["--set sim.duration", "YAML syntax error"]),
+    # YAML 1.2: `1:30` is not 90 (base 60) and `on` is not true (YAML 1.1 forms PyYAML reads by default)
+    ("set_sexagesimal", "sim: {}\n", ["--set", "sim.duration=1:30"], ["sim.duration (from --set)", "got '1:30'"]),
+    ("sexagesimal_float", "sim: {duration: '1'}\n", ["--set", "sim.duration=1:30.5"], ["got '1:30.5'"]),
+    ("bool_on", "soil: {sleep: on}\n", [], ["soil.sleep", "expected true or false, got 'on'"]),
+    ("bool_yes", MACHINE.replace("}", ", fixed_base: yes}"), [], ["machine.fixed_base", "got 'yes'"]),
     ("set_non_finite", "sim: {}\n", ["--set", "sim.duration=.inf"], ["sim.duration (from --set)", "got inf"]),
 ]
 
@@ -109,6 +120,9 @@ def scene_dir(tmp_path):
     (tmp_path / "robot.urdf").write_text('<robot name="r"><link name="base_link"/></robot>\n')
     (tmp_path / "unsorted.csv").write_text("t,boom_joint\n0.0,0.1\n0.0,0.2\n")
     (tmp_path / "nan.csv").write_text("t,boom_joint\n0.0,0.1\n1.0,nan\n")
+    (tmp_path / "huge_cell.csv").write_text("t,boom_joint\n0.0," + "1" * 200_000 + "\n")
+    (tmp_path / "ok.csv").write_text("t,boom_joint\n0.0,0.1\n1.0,0.2\n")
+    (tmp_path / "two_t.csv").write_text("t,boom_joint,t\n0.0,0.1,5.0\n1.0,0.2,6.0\n")
     return tmp_path
 
 
@@ -198,3 +212,19 @@ def test_validate_warns_of_a_motion_beyond_the_joint_limits(capsys):
     out, err = capsys.readouterr()
     assert out.strip().endswith(": ok")
     assert err.startswith("warning: motion: boom_joint is asked ") and "5.2360 rad, beyond its limits" in err
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "0"])
+def test_checkpoint_every_must_be_finite_and_positive(tmp_path, capsys, value):
+    """`inf` passed the old `> 0` check and crashed the run at its first step (a checkpoint rate of 1/inf = 0)."""
+    rc = cli.main(["run", str(tmp_path / "absent.yaml"), "--checkpoint-every", value])
+    _assert_one_line(rc, capsys.readouterr(), ["--checkpoint-every", "finite positive", f"got {value}"])
+
+
+@pytest.mark.parametrize("value", ["inf", "-1"])
+def test_view_rate_must_be_finite_and_positive(tmp_path, capsys, value):
+    """Refused before the run starts (`inf` used to crash the live view at its first frame)."""
+    rc = cli.main(["run", str(REPO / "scenes" / "zx120_dig_cycle.yaml"), "--view", "--view-rate", value,
+                   "--out", str(tmp_path / "run")])
+    _assert_one_line(rc, capsys.readouterr(), ["--view-rate", "finite positive", f"got {value}"])
+    assert not (tmp_path / "run").exists()

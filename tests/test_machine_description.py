@@ -272,3 +272,99 @@ def test_tracks_lateral_friction_defaults_below_the_tractive_and_a_higher_one_is
     (tmp_path / "grippy.yaml").write_text(yaml.safe_dump(settings))
     desc = load_machine(urdf, config=tmp_path / "grippy.yaml")
     assert any("tracks.lateral_friction 0.8 >= tracks.friction 0.8" in w and "turn" in w for w in desc.warnings)
+
+
+def test_machine_yaml_is_read_as_a_scene_is(tmp_path):
+    """Through the scene's YAML reader: YAML 1.2 numbers, one line for a duplicate key or a non-UTF-8 byte, and a
+    quoted number is a string, refused as in a scene."""
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    config = urdf.with_name("machine.yaml")
+    config.write_text("command_latency: 1e-3\n")            # YAML 1.1 (PyYAML) read this as the string '1e-3'
+    assert load_machine(urdf).command_latency == 0.001
+    config.write_text('struck_volume: {arm: "1e3"}\n')
+    assert "struck_volume.arm must be a positive number, got '1e3'" in _one_line_error(urdf)
+    config.write_text("masses: {arm: 80}\nmasses: {arm: 90}\n")
+    assert "masses: duplicate key (lines 1 and 2)" in _one_line_error(urdf)
+    config.write_bytes("name: caf\xe9\n".encode("latin-1"))
+    message = _one_line_error(urdf)
+    assert "machine.yaml" in message and "not UTF-8" in message
+
+
+def test_track_positions_are_finite_and_latency_has_the_scene_keys_bound(tmp_path):
+    settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
+    urdf = machines_dir() / "zx120" / "zx120.urdf"
+    config = tmp_path / "machine.yaml"
+    settings["tracks"]["x"] = [float("nan"), float("inf"), -1.5]
+    config.write_text(yaml.safe_dump(settings))
+    assert "tracks.x must be a list of finite wheel positions" in _one_line_error(urdf, config=config)
+    settings["tracks"]["x"] = [1.5, 0.0, -1.5]
+    settings["command_latency"] = 5000.0                    # the scene's machine.command_latency stops at 10 s
+    config.write_text(yaml.safe_dump(settings))
+    assert "command_latency must be a number of seconds >= 0 and <= 10, got 5000.0" in _one_line_error(
+        urdf, config=config)
+    settings["command_latency"] = 10.0
+    config.write_text(yaml.safe_dump(settings))
+    assert load_machine(urdf, config=config).command_latency == 10.0
+
+
+@pytest.mark.parametrize("geometry, named", [
+    ('<box size="1 1"/>', '<box size="1 1">: expected 3 finite positive numbers'),
+    ('<box size="0 0 0"/>', '<box size="0 0 0">: expected 3 finite positive numbers'),
+    ('<cylinder radius="0.1" length="-1"/>', '<cylinder length="-1">: expected a finite positive number'),
+    ('<sphere radius="nan"/>', '<sphere radius="nan">: expected a finite positive number')])
+def test_urdf_shapes_need_finite_positive_sizes(tmp_path, geometry, named):
+    """trimesh failed on a two-number box with a traceback; a zero box was taken as an empty shape."""
+    urdf = tmp_path / "shape.urdf"
+    urdf.write_text(f'<robot name="r"><link name="a"><collision><geometry>{geometry}</geometry></collision></link>'
+                    '</robot>')
+    assert f"shape.urdf: link 'a' {named}" in _one_line_error(urdf)
+
+
+@pytest.mark.parametrize("lower, upper", [("1", "-1"), ("nan", "1"), ("-1", "inf")])
+def test_urdf_joint_limits_must_be_finite_and_ordered(tmp_path, lower, upper):
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    urdf.write_text(urdf.read_text().replace('lower="-1" upper="1"', f'lower="{lower}" upper="{upper}"'))
+    with pytest.raises(UserError, match=rf"tiny.urdf: joint 'hinge' <limit> lower={lower} upper={upper}: expected "
+                                        "finite numbers with lower <= upper"):
+        joint_specs(urdf)
+
+
+def test_a_tip_no_actuated_joint_moves_is_named(tmp_path):
+    """Kinematics failed on it with a ValueError traceback when the model was built."""
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    # a sensor on a longer fixed chain off the base becomes the default tip
+    urdf.write_text(urdf.read_text().replace('<gazebo', '<joint name="m" type="fixed"><parent link="base"/>'
+                                             '<child link="mast"/></joint><link name="mast"/><joint name="s" '
+                                             'type="fixed"><parent link="mast"/><child link="sensor"/></joint>'
+                                             '<link name="sensor"/><gazebo'))
+    message = _one_line_error(urdf)
+    assert "tiny.urdf: no actuated joint moves link 'sensor'" in message and "(actuated joints: hinge)" in message
+    (urdf.parent / "machine.yaml").write_text("tip_link: mast\n")
+    assert "machine.yaml: tip_link 'mast': no actuated joint moves this link" in _one_line_error(urdf)
+    (urdf.parent / "machine.yaml").write_text("tip_link: arm\n")
+    assert load_machine(urdf).tip_link == "arm"
+
+
+def test_links_without_inertial_are_said_as_such(tmp_path):
+    """The warning printed an empty list of masses, "placeholder masses ( kg)", for links without <inertial>."""
+    urdf = _write_package(tmp_path, "../meshes/arm.dae")
+    text = urdf.read_text()
+    urdf.write_text(text[:text.index("<inertial>")] + text[text.index("</inertial>") + len("</inertial>"):])
+    kept = [w for w in load_machine(urdf).warnings if w.startswith("placeholder masses")]
+    assert len(kept) == 1 and kept[0].startswith("placeholder masses (no <inertial>) in ") and "kept for arm" in kept[0]
+    (urdf.parent / "machine.yaml").write_text("masses: {arm: 80}\n")
+    replaced = [w for w in load_machine(urdf).warnings if w.startswith("placeholder masses")]
+    assert len(replaced) == 1 and replaced[0].startswith("placeholder masses (no <inertial>) in ")
+
+
+def test_track_max_speed_is_read_checked_and_its_absence_said(tmp_path):
+    settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
+    urdf = machines_dir() / "zx120" / "zx120.urdf"
+    config = tmp_path / "machine.yaml"
+    settings["tracks"]["max_speed"] = 0
+    config.write_text(yaml.safe_dump(settings))
+    assert "tracks.max_speed must be a positive number, got 0" in _one_line_error(urdf, config=config)
+    del settings["tracks"]["max_speed"]
+    config.write_text(yaml.safe_dump(settings))
+    desc = load_machine(urdf, config=config)
+    assert desc.tracks["max_speed"] is None and any("no tracks.max_speed" in w for w in desc.warnings)

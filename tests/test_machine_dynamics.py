@@ -156,6 +156,23 @@ def test_tracked_machine_stands_on_the_ground_and_drives_straight(desc):
     machine.close()
 
 
+def test_track_speeds_are_capped_at_the_travel_speed(desc):
+    """A track speed command beyond tracks.max_speed (the ZX120's 5.5 km/h) is clipped per side, as its travel motors'
+    flow would; 20 m/s used to drive the machine at 11 m/s. Through command() too, the ROS bridge's cmd_vel path."""
+    cap = desc.tracks["max_speed"]
+    assert cap == pytest.approx(5.5 / 3.6, abs=0.01)
+    said = []
+    machine = BulletMachine(desc, dt=DT, initial_q=PHYSX_POSE, fixed_base=False, warn=said.append)
+    machine.set_track_speeds(20.0, 20.0)
+    assert machine.get_state().track_speeds.tolist() == [cap, cap]
+    machine.command(track_speeds=(-20.0, 0.5))
+    assert machine.get_state().track_speeds.tolist() == [-cap, 0.5]      # each side on its own
+    machine.set_track_speeds(-0.3, 1.0)
+    assert machine.get_state().track_speeds.tolist() == [-0.3, 1.0]      # within the cap: as asked
+    assert len(said) == 1 and "tracks.max_speed" in said[0] and "capped" in said[0]
+    machine.close()
+
+
 def _yaw(orientation) -> float:
     from opera_taichi.geometry import quat_to_rpy
 

@@ -521,7 +521,7 @@ def test_command_latency_comes_from_machine_yaml_or_the_scene(tmp_path):
     assert build_model(load_scene(DIG_CYCLE, [f"machine.config={cfg}", "machine.command_latency=0.3"])
                        ).machines[0].command_latency == 0.3
     cfg.write_text(cfg.read_text().replace("command_latency: 0.15", "command_latency: -1"))
-    with pytest.raises(UserError, match="command_latency must be a number of seconds >= 0, got -1"):
+    with pytest.raises(UserError, match="command_latency must be a number of seconds >= 0 and <= 10, got -1"):
         build_model(load_scene(DIG_CYCLE, [f"machine.config={cfg}"]))
 
 

@@ -161,3 +161,15 @@ def test_a_resumed_csv_of_another_layout_is_refused_not_appended(tmp_path):
         assert (tmp_path / "joints.csv").read_bytes() == before
     finally:
         sim.close()
+
+
+def test_a_run_covers_its_whole_duration():
+    """The step count was int(round(duration / dt)), half to even: 0.025 s at dt 0.01 ended at 0.02 s, and 0.0005 s
+    at dt 0.001 ran no step at all, both with status done."""
+    from opera_taichi.runner import steps_to_cover
+
+    assert steps_to_cover(0.025, 0.01) == 3 and steps_to_cover(0.0005, 0.001) == 1
+    assert steps_to_cover(0.0151, 0.01) == 2
+    # a whole number of steps is that number, float noise aside (0.3 / 0.1 = 2.9999999999999996)
+    assert steps_to_cover(0.3, 0.1) == 3 and steps_to_cover(0.7, 0.1) == 7
+    assert steps_to_cover(20.0, 0.001) == 20_000 and steps_to_cover(3600.0, 1e-5) == 360_000_000

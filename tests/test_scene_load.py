@@ -245,3 +245,26 @@ def test_overrides_as_a_mapping_or_as_set_strings_load_the_same_scene(tmp_path, 
     as_dict = load_scene(path, {"sim.duration": 3, "machine.base_pose.xyz": [1, 2, 0], "motion": None})
     as_sets = load_scene(path, ["sim.duration=3", "machine.base_pose.xyz=[1, 2, 0]", "motion=null"])
     assert scene_to_dict(as_dict) == scene_to_dict(as_sets) and as_dict.sim.duration == 3.0
+
+
+def test_integers_are_decimal_as_in_yaml_1_2(tmp_path):
+    """YAML 1.1 (PyYAML's default) reads `010` as octal 8; a scene means ten."""
+    scene = load_scene(_write(tmp_path, "sim: {seed: 010, duration: 5}\n"), ["sim.duration=010"])
+    assert scene.sim.seed == 10 and scene.sim.duration == 10.0
+    assert load_scene(_write(tmp_path, "sim: {seed: 0x1F}\n")).sim.seed == 31
+
+
+def test_python_api_overrides_take_paths_and_numpy_numbers_as_given(tmp_path):
+    """They were written out as JSON and read back: a Path or a numpy number raised TypeError, and nan came back as
+    the string 'NaN'."""
+    import numpy as np
+
+    path = _write(tmp_path, "sim: {}\n")
+    scene = load_scene(path, {"machine.urdf": Path("zx120"), "sim.seed": np.int64(3), "sim.duration": np.float32(2.5),
+                              "machine.base_pose.xyz": np.array([1.0, 2.0, 0.0])})
+    assert scene.machine.urdf == machines_dir() / "zx120" / "zx120.urdf"
+    assert scene.sim.seed == 3 and type(scene.sim.seed) is int and scene.sim.duration == 2.5
+    assert scene.machine.base_pose.xyz == (1.0, 2.0, 0.0)
+    with pytest.raises(UserError, match=r"sim\.duration \(from --set\): expected a finite number in s > 0 and "
+                                        r"<= 3600, got nan$"):
+        load_scene(path, {"sim.duration": float("nan")})
