@@ -124,15 +124,22 @@ P_SQRT_KTOOL = 26
 P_WALL_TOP = 27   # top of the pit walls: 0 (the ground), raised while a bed is poured so nothing spills
 P_ADH_F = 28      # soil-tool adhesion: attraction at contact and added tangential capacity, N
 P_ADH_D = 29      # adhesion range beyond contact, m
-# Sleeping: a particle quiet (speed and r x spin below sqrt(P_SLEEP_V2), no tool contact, and not in the bounding
-# sphere of a tool moving slower than the wake speed: a load a tool creeps with would press into sleepers that never
-# wake) for P_SLEEP_STEPS substeps in a row sleeps: it is neither integrated nor are its pairs with other sleepers
-# evaluated (their springs keep their values: neither side moves). It wakes when a tool comes within r + skin of it,
-# or when a touching neighbour moves faster than WAKE_FACTOR x the quiet speed. P_SLEEP_STEPS 0: nothing sleeps (the
-# default).
+# Sleeping: a particle quiet (speed and r x spin below sqrt(P_SLEEP_V2), the quiet speed; no tool contact; and not
+# in the bounding sphere of a slow tool, one moving slower than SLOW_FACTOR x the wake speed: a load a tool creeps
+# with would press into sleepers that never wake) for P_SLEEP_STEPS substeps in a row sleeps: it is neither
+# integrated nor are its pairs with other sleepers evaluated (their springs keep their values: neither side moves).
+# It wakes when a tool comes within r + skin of it, or when a touching neighbour moves faster than the wake speed
+# (WAKE_FACTOR x the quiet speed). Soil a slow tool shoves moves slower than that, and sleepers ahead of it held as a
+# wall (35 x the awake bed's force at 2 cm/s), so while a tool moves at CREEP_FRACTION to SLOW_FACTOR x the wake
+# speed, a sleeper also wakes in that tool's SDF grid or when a neighbour closes in on it faster than WAKE_APPROACH x
+# the quiet speed (only then: always on, that wakes twice the soil of a fast dig). P_SLEEP_STEPS 0: nothing sleeps
+# (the default).
 P_SLEEP_STEPS = 30
 P_SLEEP_V2 = 31
 WAKE_FACTOR2 = 4.0
+WAKE_APPROACH = 0.1
+SLOW_FACTOR = 4.0
+CREEP_FRACTION = 0.01  # slower than this fraction of the wake speed a tool is parked (a bucket the hydraulics hold)
 P_PITS = 32       # pits: 6 entries each (min xyz, max xyz), MAX_PITS of them
 N_PRM = P_PITS + 6 * MAX_PITS
 
@@ -277,7 +284,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                  nbr_j: ti.template(), nbr_h: ti.template(), rev_pos: ti.template(), pair_out: ti.template(),
                  own: ti.template(), surf_id: ti.template(), prm: ti.template(), dt: ti.f64,
                  blk_list: ti.template(), blk_active: ti.template(), block: ti.i32, n_frozen: ti.i32,
-                 stat: ti.template()):
+                 stat: ti.template(), tools: ti.template()):
     """Contact and cohesion forces of every listed pair, each evaluated once, by its holder i.
 
     The force and torque on i are summed into own[i]; what j receives is written to pair_out[rev_pos[e]]
@@ -287,6 +294,10 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
     """
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
+    # while a slow tool shoves soil, a neighbour closing in on a sleeper faster than WAKE_APPROACH x the quiet speed
+    # wakes it (see P_SLEEP_STEPS)
+    shoving = _shoving(tools, prm)
+    approach_v = WAKE_APPROACH * ti.sqrt(prm[P_SLEEP_V2])
     # only the blocks mark_blocks listed: in the others all are asleep and hold pairs with sleepers only, all skipped
     ti.loop_config(serialize=SERIAL_LOOPS)
     for slot in range(blk_list[0] * block):
@@ -321,7 +332,12 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                     d_ij = x_i - kin[j, 0]
                     reach_ij = r_i + prop[j][0] + prm[P_COH_D]
                     if d_ij.dot(d_ij) < reach_ij * reach_ij:
-                        if asleep_j and fast_i:
+                        closing_i = False
+                        closing_j = False
+                        if shoving:
+                            closing_i = -v_i.dot(d_ij) > approach_v * d_ij.norm()
+                            closing_j = v_j.dot(d_ij) > approach_v * d_ij.norm()
+                        if asleep_j and (fast_i or closing_i):
                             ti.atomic_or(surf_id[j, TOOL_BITS], WAKE_BIT)
                             if j < n_frozen:  # frozen: not integrated until the host repartitions
                                 stat[S_THAW] = 1.0
@@ -332,7 +348,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                                 if blk_active[b_j] == 0:
                                     if ti.atomic_max(blk_active[b_j], 1) == 0:
                                         blk_list[ti.atomic_add(blk_list[0], 1) + 1] = b_j
-                        if asleep_i and v_j.dot(v_j) > wake_v2:
+                        if asleep_i and (v_j.dot(v_j) > wake_v2 or closing_j):
                             ti.atomic_or(surf_id[i, TOOL_BITS], WAKE_BIT)
             dx = x_i - kin[j, 0]
             d2 = dx.dot(dx)
@@ -575,9 +591,10 @@ def _sphere_centre(tools: ti.template(), t, rot):
 
 
 @ti.func
-def _near_a_slow_tool(x, tools: ti.template(), v_wake):
-    """Whether x lies in the bounding sphere of an active tool's SDF grid whose points move slower than v_wake: a
-    tool that carries or presses soil that slowly would never wake the sleepers it pushes against."""
+def _near_a_slow_tool(x, tools: ti.template(), v_wake, v_min):
+    """Whether x lies in the bounding sphere of an active tool's SDF grid whose points move slower than v_wake (and
+    at v_min or faster): a tool that carries or presses soil that slowly would never wake the sleepers it pushes
+    against (the soil it pushes moves slower than the wake speed too)."""
     near = False
     for t in range(MAX_TOOLS):
         if tools[t, T_ON] > 0.0:
@@ -585,8 +602,46 @@ def _near_a_slow_tool(x, tools: ti.template(), v_wake):
             d = x - _sphere_centre(tools, t, _tool_rotation(tools, t))
             vel = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2])
             ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
-            near = near or (d.dot(d) < r_bs * r_bs and vel.norm() + ang.norm() * r_bs < v_wake)
+            speed = vel.norm() + ang.norm() * r_bs
+            near = near or (d.dot(d) < r_bs * r_bs and v_min <= speed < v_wake)
     return near
+
+
+@ti.func
+def _tool_speed(tools: ti.template(), t):
+    """An upper bound of the speed of tool t's points in its bounding sphere."""
+    return vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2]).norm() + \
+        vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2]).norm() * tools[t, T_BS + 3]
+
+
+@ti.func
+def _slow(tools: ti.template(), t, prm: ti.template()):
+    """Whether tool t shoves soil too slowly to wake it by speed: between CREEP_FRACTION and SLOW_FACTOR x the wake
+    speed (slower: parked; faster: the soil it moves wakes its neighbours)."""
+    v_wake = ti.sqrt(WAKE_FACTOR2 * prm[P_SLEEP_V2])
+    v_t = _tool_speed(tools, t)
+    return tools[t, T_ON] > 0.0 and CREEP_FRACTION * v_wake <= v_t and v_t < SLOW_FACTOR * v_wake
+
+
+@ti.func
+def _shoving(tools: ti.template(), prm: ti.template()):
+    """Whether any tool is slow (_slow): the sleepers' extra wake tests run only then."""
+    any_slow = False
+    for t in ti.static(range(MAX_TOOLS)):
+        if _slow(tools, t, prm):
+            any_slow = True
+    return any_slow
+
+
+@ti.func
+def _in_a_slow_tools_grid(x, tools: ti.template(), prm: ti.template()):
+    """Whether x may lie in the SDF grid of a slow tool (the test _box_meets_tool_grid makes for a block's box: a
+    sleeper this wakes is in a block mark_blocks lists, so skipping the other blocks changes nothing)."""
+    inside = False
+    for t in range(MAX_TOOLS):
+        if _slow(tools, t, prm):
+            inside = inside or _box_meets_tool_grid(x, x, tools, t)
+    return inside
 
 
 @ti.func
@@ -752,6 +807,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         if ti.static(PER_PARTICLE):
             first += item % block
             last = ti.min(last, first + 1)
+        shoving = _shoving(tools, prm)
         travel = ti.f64(0.0)  # summed over the tools, which a particle's tool_gap is compared with
         for t in range(MAX_TOOLS):
             if tools[t, T_ON] > 0.0:
@@ -771,6 +827,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     # asleep: no forces, no integration; wake on a neighbour's request or a tool within r + skin,
                     # integrated again from the next substep (its pairs are evaluated again from then on)
                     woken = (word & WAKE_BIT) != 0
+                    if shoving and not woken:  # a slow tool near: the soil it pushes would meet sleepers
+                        woken = _in_a_slow_tools_grid(kin[i, 0], tools, prm)
                     if not woken and (skip == 0 or not travel < tool_gap[i]):  # (the test is due; NaN: test)
                         x_s = kin[i, 0]
                         reach = prop[i][0] + prm[P_SKIN] + prm[P_ADH_D]
@@ -947,7 +1005,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                     w.dot(w) * r * r < prm[P_SLEEP_V2]:
                                 calm = ti.min((tool_bits >> CALM_SHIFT) + 1, CALM_MAX)
                                 if calm >= sleep_steps and _near_a_slow_tool(
-                                        x, tools, ti.sqrt(WAKE_FACTOR2 * prm[P_SLEEP_V2])):
+                                        x, tools, SLOW_FACTOR * ti.sqrt(WAKE_FACTOR2 * prm[P_SLEEP_V2]), 0.0):
                                     calm = sleep_steps - 1  # a slow tool's load or ground: it would press sleepers
                                 if calm >= sleep_steps:  # falls asleep at rest
                                     kin[i, 1] = vec3(0.0)
@@ -1047,7 +1105,7 @@ def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f6
     compute graph, more than an idle substep's work)."""
     _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo, n_frozen)
     _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list,
-                 blk_active, block, n_frozen, stat)
+                 blk_active, block, n_frozen, stat, tools)
     _step(n_act, kin, prop, flags, x_ref, own, rev_off, pair_out, surf_id, surf_h, tools, tool_acc, sdf, prm, stat,
           partial, dt, bulk_damping, block, blk_active, blk_list, blk_hot, blk_box, nbr_off, nbr_j, rev_holder,
           n_frozen, tool_gap, skip)

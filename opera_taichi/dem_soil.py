@@ -866,7 +866,8 @@ class DemSoil:
     def _start_asleep(self) -> None:
         """With soil.sleep, a settled bed starts asleep: its grains are at rest (velocities zeroed at the end of the
         settling), so a big bed is not integrated whole for SLEEP_AFTER first and can be frozen at once. A bed that
-        had not come to rest (the warning) then creeps only where a tool or moving soil wakes it."""
+        had not come to rest (the warning) starts asleep too, as it stands: a grain still falling hangs until a tool
+        or moving soil wakes it."""
         if not self.sleep or self.n_act == 0:
             return
         surf = self._surf_id.to_numpy()
@@ -878,8 +879,9 @@ class DemSoil:
     def _check_settled(self, settle_time: float) -> None:
         if self.settle_speed > 0.0:
             self.warnings.append(f"soil: the bed did not come to rest in soil.settle_time = {settle_time:g} s (a grain "
-                                 f"still moved at {self.settle_speed:.3g} m/s); it creeps at the start of the run "
-                                 f"(with soil.sleep, where a tool or moving soil wakes it): raise soil.settle_time")
+                                 f"still moved at {self.settle_speed:.3g} m/s); it goes on settling at the start of "
+                                 f"the run, or with soil.sleep it starts asleep as it stands (grains still falling "
+                                 f"hang until a tool or moving soil wakes them): raise soil.settle_time")
 
     def _pour_lattice(self) -> tuple[np.ndarray, np.ndarray]:
         """Jittered cubic lattice over each pit, tall enough that the settled bed overfills it a little."""

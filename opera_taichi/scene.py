@@ -384,12 +384,15 @@ class SoilConfig(_Model):
         None, description="Soil preset file (YAML of bulk parameters, the keys of `overrides`, e.g. written by "
         "`opera-taichi calibrate`), relative to the scene file: its values replace the preset's and `overrides` "
         "replace its; its own `preset` key, when given, names the preset it builds on.")
-    sleep: Bool = Field(False, description="Let particles at rest far from every tool sleep (not integrated; woken "
-                                           "by a tool within a grain's reach or a moving neighbour): the cost of a "
-                                           "step follows the soil that moves. The settled bed starts asleep; in a "
-                                           "big bed the soil far from every tool and from anything moving is also "
-                                           "left out of the neighbour rebuilds (frozen) until something nears it. "
-                                           "Mass and contact history stay exact.")
+    sleep: Bool = Field(False, description="Let particles at rest away from every tool sleep (not integrated; woken "
+                                           "by a tool within a grain's reach or a moving neighbour; while a tool "
+                                           "moves slowly, nothing sleeps near it and a sleeper the soil it shoves "
+                                           "closes in on wakes too): the cost of a step follows the soil that "
+                                           "moves. The settled bed starts asleep; in a big bed the soil far from "
+                                           "every tool and from anything moving is also left out of the neighbour "
+                                           "rebuilds (frozen) until something nears it. Mass and contact history "
+                                           "stay exact; the soil's path is another, as a chaotic dig's with another "
+                                           "seed.")
     bed_shift: Vec3M = Field((0.0, 0.0, 0.0), description="Moves every settled bed particle by [dx, dy, dz] at "
                              "t = 0, leaving the pits empty: [dx, 0, H] stands a settled block of height H on the "
                              "ground, released at once (column collapse, heaps, free-standing cuts).")

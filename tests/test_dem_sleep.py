@@ -66,7 +66,8 @@ def freeze_any_bed(monkeypatch):
 def test_a_held_load_weighs_on_the_bucket_what_it_weighs(tmp_path):
     """The main job's path at 12 cm, then 4 s of holding the load: the joints creep to rest slower than soil wakes.
     Had the load's top fallen asleep, the creeping bucket pressed into grains that never woke and the soil's force
-    on it grew to 2.9 x the load's weight and stayed there; asleep nowhere near a slow tool, it is the weight."""
+    on it grew to 2.9 x the load's weight and stayed there; asleep nowhere near a slow tool, it is the weight (with
+    the grains resting on the bucket outside its hull, which soil_mass.csv does not count)."""
     out = tmp_path / "held"
     assert main(["run", SCENE, "--quiet", "--out", str(out), "--set", f"soil.overrides.radius={RADIUS}",
                  "--set", "sim.duration=29", "--set", "output.plots=false"]) == 0
@@ -75,8 +76,11 @@ def test_a_held_load_weighs_on_the_bucket_what_it_weighs(tmp_path):
     t, fz = np.asarray(wrench["t"]), np.asarray(wrench["fz"])
     holding = t >= 26.0
     assert held_kg > 100.0
-    # everything in the bucket's hull, nothing else on it: its weight to a percent, all along the hold
-    np.testing.assert_allclose(-fz[holding], held_kg * 9.81, rtol=0.01)
+    # the load's weight, all along the hold: the soil in the bucket's hull and a few grains resting on the bucket
+    # outside it (+4.8% on this path with all the soil awake; +5.8% asleep), steady to a percent
+    weight = held_kg * 9.81
+    assert np.all(-fz[holding] > weight) and np.all(-fz[holding] < 1.1 * weight), (fz[holding].min(), weight)
+    assert np.ptp(fz[holding]) < 0.01 * weight
     fx, fy = np.asarray(wrench["fx"])[holding], np.asarray(wrench["fy"])[holding]
     assert np.max(np.hypot(fx, fy)) < 0.01 * held_kg * 9.81
 
@@ -104,6 +108,25 @@ def test_a_blade_cuts_sleeping_soil_with_the_same_draft(monkeypatch):
     assert drafts[0] > 1000.0
     assert drafts[1] == pytest.approx(drafts[0], rel=0.05), drafts
     assert drafts[2] == pytest.approx(drafts[0], rel=0.05), drafts
+
+
+def test_a_blade_creeping_into_a_sleeping_bed_meets_soil_not_a_wall(tmp_path):
+    """A blade at 2 cm/s, slower than the wake speed (3.1 cm/s at 6 cm grains), into a bed that starts asleep: the
+    grains it pushes move as slowly and never woke their sleeping neighbours, which held like a wall; the force grew
+    to 20-50 x the awake bed's. Sleepers in the bounding sphere of a moving tool now wake. (One chaotic cut a side:
+    the sleeping bed read 1.1-1.25 x the awake one over these windows.)"""
+    drafts = {}
+    for sleep in ("false", "true"):
+        out = tmp_path / sleep
+        assert main(["run", BLADE, "--quiet", "--out", str(out), "--set", f"soil.sleep={sleep}",
+                     "--set", "soil.overrides.radius=0.06", "--set", "soil.heightmap_cell=0.06",
+                     "--set", "sim.duration=2", "--set", "tools.0.start=[2.54,0,0.1]",
+                     "--set", "tools.0.velocity=[-0.02,0,0]", "--set", "output.wrench_rate=100",
+                     "--set", "output.plots=false"]) == 0
+        w = read_csv_columns(out / "tool_wrench.csv")
+        drafts[sleep] = float(w["fx"][w["t"] >= 1.0].mean())
+    assert drafts["false"] > 500.0   # the blade is in the soil from 1 s on
+    assert drafts["true"] < 1.5 * drafts["false"], drafts
 
 
 def _bed(sleep: bool, settle_time: float = 1.0):
