@@ -268,6 +268,21 @@ def test_a_run_killed_while_it_wrote_joints_csv_compares_on_its_whole_rows(tmp_p
         assert code == 2 and words in err and "\n" not in err, err
 
 
+def test_the_rate_ratio_of_a_log_offset_in_time_compares_the_same_motion(tmp_path):
+    """The run's own joints logged 0.5 s later: lag -0.5 s and rate ratio 1. The arm moves fast for its first 1.5 s
+    (12% of the run), then creeps: rated on the common span before the shift, the run lost a third of its fast
+    phase and its 90th percentile fell into the creep (a ratio of about 0.1)."""
+    t = np.arange(0.0, 12.0, 0.01)
+    fast = 1.5 * 0.5 * (1.0 - np.cos(math.pi * np.minimum(t / 1.5, 1.0)))
+    q = {"arm_joint": fast + 0.02 * np.maximum(t - 1.5, 0.0)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    joint_log(tmp_path / "late.csv", t + 0.5, "arm_joint", q["arm_joint"])
+    res = cmp.compare(run, joints=tmp_path / "late.csv", out=tmp_path / "late", figures=False)
+    arm = res["joints"]["arm_joint"]
+    assert arm["lag_s"] == pytest.approx(-0.5, abs=0.011)
+    assert arm["rate_ratio"] == pytest.approx(1.0, abs=0.02)
+
+
 def _cli(args, capsys):
     code = main(["compare", *map(str, args)])
     err = capsys.readouterr().err.strip()

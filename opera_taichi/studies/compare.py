@@ -28,7 +28,8 @@ joints.csv), on their common time span resampled at `JOINT_DT`:
   for every joint, with a warning;
 - rmse_rad: RMS of run minus reference; lag_s: the shift that best aligns the two (cross-correlation of the
   mean-removed angles, positive = the run is late); rate_ratio: the 90th percentile of the run's |angular rate| over
-  the reference's (0.5 = the run moves at half the real rate).
+  the reference's (0.5 = the run moves at half the real rate), both rated over the span they share once the
+  reference is shifted by the lag: the same motion (a log longer than the run is rated over the part the run did).
 """
 from __future__ import annotations
 
@@ -536,10 +537,23 @@ def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
     return lag
 
 
+def aligned_rates(t_run, q_run, t_ref, q_ref, lag_s: float, n_smooth: int):
+    """(run's |rate|, reference's |rate|) resampled at JOINT_DT over the span both cover once the reference is
+    shifted by lag_s (its t + lag_s: a lag > 0, a late run, moves the reference later); None when that span is too
+    short to rate."""
+    t0, t1 = max(t_run[0], t_ref[0] + lag_s), min(t_run[-1], t_ref[-1] + lag_s)
+    t = np.arange(t0, t1 + 1e-12, JOINT_DT)
+    if len(t) <= 2 * n_smooth:
+        return None
+    a, b = np.interp(t, t_run, q_run), np.interp(t, np.asarray(t_ref) + lag_s, q_ref)
+    return _rate(a, n_smooth), _rate(b, n_smooth)
+
+
 def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
                      warnings: list | None = None, specs: dict | None = None,
                      check: bool = True) -> tuple[dict, dict]:
-    """Per-joint rmse, lag and rate ratio on the common time span; the arrays for the figure. A log in other units
+    """Per-joint rmse and lag on the common time span, rate ratio on the span shared once aligned by the lag (the
+    common one for a joint without a lag); the arrays for the figure. A log in other units
     than the run's (degrees under radian names) is refused (check_units; `specs`: the run's machine_joints, None
     when unknown; check=False for another run's joints.csv, radians by the run folder's contract); one whose time
     looks like milliseconds is warned of."""
@@ -576,6 +590,12 @@ def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
         moving = float(np.percentile(b, 95) - np.percentile(b, 5)) > STILL_RANGE
         lag = best_lag(a, b, max_lag) if moving else None
         ra, rb = _rate(a, n_smooth), _rate(b, n_smooth)
+        if lag:
+            # the rates of the same motion: the reference shifted by the lag, over the span both cover then (on the
+            # common span before the shift, a lag cut part of a fast phase out of one of them: 0.22 for 1)
+            turns = spec is not None and spec.turns
+            ra, rb = aligned_rates(t_run, run[j], t_ref, unwrap_swing(ref[j]) if turns else ref[j],
+                                   lag * JOINT_DT, n_smooth) or (ra, rb)
         pa, pb = float(np.percentile(ra, 90)), float(np.percentile(rb, 90))
         per[j] = {"rmse_rad": float(np.sqrt(np.mean((a - b) ** 2))), "rmse_deg": math.degrees(
             float(np.sqrt(np.mean((a - b) ** 2)))), "lag_s": None if lag is None else lag * JOINT_DT,
