@@ -97,6 +97,33 @@ def test_settings_no_trial_can_fix_are_refused_before_the_first(tmp_path, capsys
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("row, words", [
+    ("0.06,blade,nan", "force.csv: line 5, column fx: expected a finite number, got 'nan'"),
+    ("0.06,blade,", "force.csv: line 5, column fx: expected a finite number, got ''"),
+    ("0.06,blade", "force.csv: line 5: expected 3 fields (as the header), got 2"),
+])
+def test_a_measured_force_curve_with_a_bad_cell_is_refused_naming_its_line(tmp_path, capsys, no_trials, row, words):
+    """A NaN or empty force cell passed the check and scored every trial nan ("no trial finished"), an empty one
+    read as "no numeric column 'fx'", and a short row was dropped: each is refused before the first trial."""
+    path = _calibration(tmp_path, "bad", COHESION)
+    lines = (tmp_path / "force.csv").read_text().splitlines()
+    lines[4] = row  # line 5 of the file
+    (tmp_path / "force.csv").write_text("\n".join(lines) + "\n")
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "calibrate.force.file: " in err and words in err and "\n" not in err, err
+
+
+def test_a_measured_force_header_with_spaces_after_the_commas_is_read(tmp_path, no_trials):
+    from opera_taichi.studies.calibrate import calibrate
+
+    path = _calibration(tmp_path, "spaced", COHESION)
+    text = (tmp_path / "force.csv").read_text()
+    (tmp_path / "force.csv").write_text(text.replace("t,tool,fx", "t, tool, fx", 1))
+    with pytest.raises(_TrialStarted):  # every check passed: the first trial was about to start
+        calibrate(path, out=tmp_path / "out")
+
+
 def test_refine_by_default_with_too_few_trials_says_it_is_off(tmp_path, capsys, no_trials):
     from opera_taichi.studies.calibrate import calibrate
 

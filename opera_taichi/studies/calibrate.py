@@ -17,7 +17,8 @@ The study file's `calibrate` section (its scene, set, reference and out as for `
 Objectives (the loss, smaller is better):
 - force: RMS of the run's force curve minus the measured one (both smoothed by a moving average of smooth_s, on the
   measured samples inside t), over the measured curve's RMS. The measured CSV has `t` and `column`; a `tool` column,
-  when there is one (a run's tool_wrench.csv), selects the rows of `tool`;
+  when there is one (a run's tool_wrench.csv), selects the rows of `tool`. Every row as long as the header, t and the
+  force finite numbers (else refused before the first trial, naming line and column); header names are stripped;
 - terrain: compare's terrain_rmse_m against the study's reference scan; joints: compare's joints_rmse_rad against
   its joint log; metric: |metric - target| / |target|.
 Refinement: with `refine`, the last trial is not sampled but placed where a fit through the trials so far puts the
@@ -62,18 +63,60 @@ def _smooth_on(t, v, t_eval, width):
     return (np.interp(hi, t, c) - np.interp(lo, t, c)) / span
 
 
-def read_force_curve(path, column: str, tool: str | None) -> tuple[np.ndarray, np.ndarray]:
+def read_measured_csv(path: Path, numeric: tuple, text: tuple = (), key: str = "calibrate.force.file"):
+    """(header, {column: values}) of a measured CSV, header names stripped of spaces: the `numeric` columns it has as
+    float arrays, the `text` ones as lists. A row of another length than the header, or a cell of a numeric column
+    that is not a finite number, is refused naming its line and column (a NaN or an empty force cell scored every
+    trial nan; a short row was dropped)."""
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = [(line, row) for line, row in enumerate(csv.reader(fh), start=1) if any(c.strip() for c in row)]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise UserError(f"{key}: {path}: unreadable ({type(exc).__name__})") from None
+    if not rows:
+        raise UserError(f"{key}: {path}: empty; expected a header naming `t` and the force column")
+    header = [c.strip() for c in rows[0][1]]
+    where = {n: header.index(n) for n in (*numeric, *text) if n in header}
+    cols: dict = {n: [] for n in where}
+    for line, row in rows[1:]:
+        if len(row) != len(header):
+            raise UserError(f"{key}: {path}: line {line}: expected {len(header)} fields (as the header), got "
+                            f"{len(row)}")
+        for name, i in where.items():
+            cell = row[i].strip()
+            if name in text:
+                cols[name].append(cell)
+                continue
+            try:
+                value = float(cell)
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value):
+                raise UserError(f"{key}: {path}: line {line}, column {name}: expected a finite number, got {cell!r}")
+            cols[name].append(value)
+    return header, {n: v if n in text else np.asarray(v, float) for n, v in cols.items()}
+
+
+def read_force_curve(path, column: str, tool: str | None, measured: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(t, force) of a force CSV: the measured one (checked cell by cell: read_measured_csv), or a run's
+    tool_wrench.csv (measured=False: a row cut short by a killed run is left out, as wherever a run is read)."""
     from ..recorders import read_csv_columns
 
     path = Path(path)
-    try:
-        cols = read_csv_columns(path)
-    except (OSError, IndexError, ValueError, UnicodeDecodeError) as exc:
-        raise UserError(f"calibrate.force.file: {path}: unreadable ({type(exc).__name__})") from None
+    if measured:
+        header, cols = read_measured_csv(path, ("t", column), ("tool",) if column != "tool" else ())
+    else:
+        try:
+            cols = read_csv_columns(path)
+        except (OSError, IndexError, ValueError, UnicodeDecodeError) as exc:
+            raise UserError(f"calibrate.force.file: {path}: unreadable ({type(exc).__name__})") from None
+        header = list(cols)
     if "t" not in cols:
-        raise UserError(f"calibrate.force.file: {path}: header has no `t` column (got {', '.join(cols)})")
+        raise UserError(f"calibrate.force.file: {path}: header has no `t` column (got {', '.join(header)})")
     if column not in cols or isinstance(cols[column], list):
-        raise UserError(f"calibrate.force.column: {path} has no numeric column {column!r} (got {', '.join(cols)})")
+        raise UserError(f"calibrate.force.column: {path} has no numeric column {column!r} (got {', '.join(header)})")
     keep = np.ones(len(cols["t"]), bool)
     if tool is not None and "tool" in cols:
         keep = np.array([str(c) == tool for c in cols["tool"]])
@@ -91,7 +134,8 @@ def objective_value(run_dir: Path, spec: dict) -> dict:
     if kind == "force":
         f = spec["force"]
         t_ref, f_ref = read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))
-        t_run, f_run = read_force_curve(run_dir / "tool_wrench.csv", f.get("column", "fx"), f.get("tool"))
+        t_run, f_run = read_force_curve(run_dir / "tool_wrench.csv", f.get("column", "fx"), f.get("tool"),
+                                         measured=False)
         window = f.get("t") or [max(t_ref[0], t_run[0]), min(t_ref[-1], t_run[-1])]
         te = t_ref[(t_ref >= window[0]) & (t_ref <= window[1])]
         if len(te) < 3:
