@@ -82,6 +82,8 @@ def no_trials(monkeypatch):
      "calibrate.metric.name: summary.tools.bucket.soil_held_kg: the runs have no tool 'bucket' (tools: blade)"),
     ("objective: metric\n  metric: {name: wrench.blade.fx, target: 1000}", [],
      "calibrate.metric.name: expected wrench.<tool>.<column>.<stat>"),
+    ("objective: force\n  force: {file: force.csv, tool: blade, column: fx, t: [0.05, 0.5]}", [],  # 0.3 s trials
+     "calibrate.force.t: [0.05, 0.5] ends after the trials' end at sim.duration 0.3 s"),
     (f"objective: force\n  refine: true\n  trials: 3\n  force: {FORCE}", [],
      "calibrate.refine: true needs trials >= 4 (3 to fit, then the refined one), got 3;"),
     (f"objective: force\n  refine: true\n  trials: 8\n  force: {FORCE}", ["--trials", "2"],
@@ -122,6 +124,25 @@ def test_a_measured_force_header_with_spaces_after_the_commas_is_read(tmp_path, 
     (tmp_path / "force.csv").write_text(text.replace("t,tool,fx", "t, tool, fx", 1))
     with pytest.raises(_TrialStarted):  # every check passed: the first trial was about to start
         calibrate(path, out=tmp_path / "out")
+
+
+def test_a_force_window_past_the_runs_end_is_not_scored(tmp_path):
+    """A run whose force stops before the window does (a trial cut short, a duration the window outlasts): its force
+    held at the last sample was scored as if measured; now it is refused, naming calibrate.force.t."""
+    from opera_taichi.errors import UserError
+    from opera_taichi.studies.calibrate import objective_value
+
+    _calibration(tmp_path, "x", COHESION)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "tool_wrench.csv").write_text("t,tool,fx\n" + "".join(f"{0.02 * i:.2f},blade,{500 + 40 * i}\n"
+                                                                  for i in range(11)))  # 0 .. 0.2 s
+    spec = {"objective": "force", "force": {"file": str(tmp_path / "force.csv"), "tool": "blade", "column": "fx",
+                                            "t": [0.05, 0.3], "smooth_s": 0.05}}
+    with pytest.raises(UserError, match=r"calibrate\.force\.t: .* the run's force spans 0-0.2 s"):
+        objective_value(run, spec)
+    spec["force"]["t"] = [0.05, 0.2]  # within it: scored (the same curve: only the smoothing at its end differs)
+    assert objective_value(run, spec)["loss"] < 0.02
 
 
 def test_refine_by_default_with_too_few_trials_says_it_is_off(tmp_path, capsys, no_trials):

@@ -18,7 +18,9 @@ Objectives (the loss, smaller is better):
 - force: RMS of the run's force curve minus the measured one (both smoothed by a moving average of smooth_s, on the
   measured samples inside t), over the measured curve's RMS. The measured CSV has `t` and `column`; a `tool` column,
   when there is one (a run's tool_wrench.csv), selects the rows of `tool`. Every row as long as the header, t and the
-  force finite numbers (else refused before the first trial, naming line and column); header names are stripped;
+  force finite numbers (else refused before the first trial, naming line and column); header names are stripped.
+  A window t ending after the trials' sim.duration is refused before the first trial, a run's force that stops
+  before the window's measured samples do when it is scored;
 - terrain: compare's terrain_rmse_m against the study's reference scan; joints: compare's joints_rmse_rad against
   its joint log; metric: |metric - target| / |target|.
 Refinement: with `refine`, the last trial is not sampled but placed where a fit through the trials so far puts the
@@ -140,6 +142,10 @@ def objective_value(run_dir: Path, spec: dict) -> dict:
         te = t_ref[(t_ref >= window[0]) & (t_ref <= window[1])]
         if len(te) < 3:
             raise UserError(f"calibrate.force.t: fewer than 3 measured samples in {window}")
+        step = float(np.median(np.diff(t_run)))
+        if te[-1] > t_run[-1] + step or te[0] < t_run[0] - step:  # beyond them the run's force is held, not measured
+            raise UserError(f"calibrate.force.t: the window {window} holds measured samples from {te[0]:g} to "
+                            f"{te[-1]:g} s, the run's force spans {t_run[0]:g}-{t_run[-1]:g} s; give t within it")
         w = float(f.get("smooth_s", 0.2))
         a, b = _smooth_on(t_run, f_run, te, w), _smooth_on(t_ref, f_ref, te, w)
         scale_ = float(np.sqrt(np.mean(b ** 2))) or 1.0
@@ -308,6 +314,22 @@ def _check_outputs(study, cfg: dict, points: list[dict], label: str) -> None:
         raise UserError(f"{label}: {key}: {detail}") from None
 
 
+def _check_window(study, cfg: dict, label: str) -> None:
+    """A force window t that ends after the trials' sim.duration is refused: the run's force would be held at its
+    last sample over the rest (a loss of a curve the run never made). The calibrated soil values leave the duration
+    as the study's `set` and scene give it."""
+    from ..scene import load_scene
+    from .study import overrides
+
+    window = (cfg["spec"].get("force") or {}).get("t")
+    if cfg["spec"]["objective"] != "force" or window is None:
+        return
+    duration = load_scene(study.scene, overrides(study, {})).sim.duration
+    if window[1] > duration:
+        raise UserError(f"{label}: calibrate.force.t: {window} ends after the trials' end at sim.duration {duration:g} "
+                        f"s; give t: [t0, t1] with t1 <= {duration:g} (or a longer sim.duration in `set`)")
+
+
 def _sampler(kind: str, seed: int, trials: int):
     import optuna
 
@@ -436,6 +458,7 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
     cfg = _section(study, label, trials)
     params = cfg["params"]
     _check_outputs(study, cfg, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)
+    _check_window(study, cfg, label)
     study.out.mkdir(parents=True, exist_ok=True)
     trials_dir = study.out / "trials"
     optuna.logging.set_verbosity(optuna.logging.WARNING)
