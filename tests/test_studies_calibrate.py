@@ -145,6 +145,23 @@ def test_a_force_window_past_the_runs_end_is_not_scored(tmp_path):
     assert objective_value(run, spec)["loss"] < 0.02
 
 
+def test_a_preset_file_another_calibration_wrote_is_not_overwritten(tmp_path, capsys, no_trials):
+    """preset_file is the study file's, whatever --out: a second calibration into another folder overwrote the
+    first's preset. It is refused before the first trial; the calibration that wrote it (same out) goes on."""
+    from opera_taichi.studies.calibrate import calibrate
+
+    path = _calibration(tmp_path, "fit", COHESION + "\n  preset_file: fitted.yaml")
+    first = f"preset: sand\ncohesion: 800.0\ncalibration: {{out: {tmp_path / 'first'}, loss: 0.1}}\n"
+    (tmp_path / "fitted.yaml").write_text(first)
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "second")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"calibrate.preset_file: {tmp_path / 'fitted.yaml'} holds the preset of the calibration in " \
+           f"{tmp_path / 'first'}; give another preset_file" in err and "\n" not in err, err
+    assert (tmp_path / "fitted.yaml").read_text() == first and not (tmp_path / "second").exists()
+    with pytest.raises(_TrialStarted):  # its own calibration's folder: every check passed
+        calibrate(path, out=tmp_path / "first")
+
+
 def test_refine_by_default_with_too_few_trials_says_it_is_off(tmp_path, capsys, no_trials):
     from opera_taichi.studies.calibrate import calibrate
 
@@ -166,6 +183,7 @@ def test_written_preset_reproduces_the_best_trials_soil(fitted):
     result = json.loads((folder / "out" / "calibration.json").read_text())
     preset = yaml.safe_load(Path(result["preset_file"]).read_text())
     assert preset["friction_angle_deg"] == 38.5 and preset["density"] == 1700.0
+    assert preset["calibration"]["out"] == str((folder / "out").resolve())  # whose it is: see _check_preset
     with open(folder / "out" / "calibration.csv", newline="") as fh:
         (row,) = list(csv.DictReader(fh))
     run_dir = Path(row["run_dir"])

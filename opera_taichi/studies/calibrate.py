@@ -31,7 +31,9 @@ trials (per parameter, kept inside the bounds). The result is a trial like any o
 Resumable: the trials live in <out>/optuna.journal (Optuna's journal storage); a rerun adds trials up to `trials`,
 only to the same calibration (the fingerprint in the Optuna study's user attrs: set, scene, parameter space,
 objective); another is refused, naming what differs.
-The preset file reproduces the best trial's soil: the scene's preset file, overrides and the calibrated values.
+The preset file reproduces the best trial's soil: the scene's preset file, overrides and the calibrated values. A
+preset_file is relative to the study file and moves with nothing else: outside <out>, one that exists is overwritten
+only when this calibration wrote it (its `calibration.out` is this <out>), else refused before the first trial.
 """
 from __future__ import annotations
 
@@ -314,6 +316,24 @@ def _check_outputs(study, cfg: dict, points: list[dict], label: str) -> None:
         raise UserError(f"{label}: {key}: {detail}") from None
 
 
+def _check_preset(path: Path, study, label: str) -> None:
+    """A preset_file outside the calibration's folder is written only when it is new or this calibration's own (its
+    `calibration.out` names this folder): a second calibration into another --out overwrote the first's preset."""
+    import yaml
+
+    if not path.exists() or study.out in path.parents:
+        return
+    try:
+        block = yaml.safe_load(path.read_text()).get("calibration")
+    except (OSError, ValueError, AttributeError, yaml.YAMLError):
+        block = None
+    owner = block.get("out") if isinstance(block, dict) else None
+    if owner == str(study.out):
+        return
+    what = f"the preset of the calibration in {owner}" if owner else "a file this calibration did not write"
+    raise UserError(f"{label}: calibrate.preset_file: {path} holds {what}; give another preset_file (or remove it)")
+
+
 def _check_window(study, cfg: dict, label: str) -> None:
     """A force window t that ends after the trials' sim.duration is refused: the run's force would be held at its
     last sample over the rest (a loss of a curve the run never made). The calibrated soil values leave the duration
@@ -456,6 +476,7 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
     study = load_study(path, out)
     check_out_folder(study.out, study.name, str(path), calibrate=True)
     cfg = _section(study, label, trials)
+    _check_preset(cfg["preset"], study, label)
     params = cfg["params"]
     _check_outputs(study, cfg, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)
     _check_window(study, cfg, label)
@@ -580,7 +601,8 @@ def write_preset(path: Path, study, best: dict, loss: float, cfg: dict, wall: fl
     preset, values = scene_soil_values(soil)  # the values as the trial's soil was resolved from them
     radius = resolve_soil(preset, values).radius
     values.pop("radius", None)  # a resolution, not a soil property: a scene keeps its own
-    calibration = {"study": str(study.source), "scene": str(study.scene), "objective": cfg["spec"]["objective"],
+    calibration = {"study": str(study.source), "out": str(study.out), "scene": str(study.scene),
+                   "objective": cfg["spec"]["objective"],
                    "loss": float(loss), "trials": cfg["trials"], "radius_m": radius, "wall_time_s": round(wall, 1)}
     if soil.preset_file is not None:
         calibration["built_on"] = str(soil.preset_file)
