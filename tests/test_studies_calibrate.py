@@ -126,6 +126,19 @@ def test_a_measured_force_header_with_spaces_after_the_commas_is_read(tmp_path, 
         calibrate(path, out=tmp_path / "out")
 
 
+def test_a_compare_metric_objective_comparison_json_cannot_hold_is_refused_before_the_first(tmp_path, capsys,
+                                                                                          no_trials):
+    """objective: metric on a misspelt compare.<key> simulated every trial, then said "no trial finished"."""
+    path = _calibration(tmp_path, "cmp", "parameters: {soil.overrides.cohesion: {low: 0, high: 2000}}\n  trials: 1\n"
+                        "  objective: metric\n  metric: {name: compare.terrain_rmse, target: 0.0}")
+    (tmp_path / "scan.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n")
+    path.write_text(path.read_text() + "reference: {terrain: scan.xyz}\n")
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "calibrate.metric.name: compare.terrain_rmse: comparison.json has no 'terrain_rmse' with reference " \
+           "terrain; its keys: " in err and "terrain_rmse_m" in err and "\n" not in err, err
+
+
 def test_a_force_window_past_the_runs_end_is_not_scored(tmp_path):
     """A run whose force stops before the window does (a trial cut short, a duration the window outlasts): its force
     held at the last sample was scored as if measured; now it is refused, naming calibrate.force.t."""

@@ -283,6 +283,28 @@ def test_the_rate_ratio_of_a_log_offset_in_time_compares_the_same_motion(tmp_pat
     assert arm["rate_ratio"] == pytest.approx(1.0, abs=0.02)
 
 
+def test_comparison_keys_hold_every_key_compare_writes(tmp_path):
+    """A study checks compare.<key> metrics against comparison_keys before any run: every key a comparison writes
+    must be there, for each kind of reference."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    gx, gy = np.meshgrid(X, Y, indexing="ij")
+    np.savez(tmp_path / "before.npz", x=X, y=Y, z=ground(gx, gy))
+    np.savez(tmp_path / "after.npz", x=X, y=Y, z=ground(gx, gy) + trench(gx, gy))
+    joint_log(tmp_path / "log.csv", t, "boom_joint", q["boom_joint"])
+    cases = [({"against": run}, dict(against=run)),
+             ({"terrain": 1, "terrain_before": 1, "joints": 1},
+              dict(terrain=tmp_path / "after.npz", terrain_before=tmp_path / "before.npz", joints=tmp_path / "log.csv")),
+             ({"joints": 1}, dict(joints=tmp_path / "log.csv"))]
+    for i, (reference, kwargs) in enumerate(cases):
+        res = cmp.compare(run, out=tmp_path / f"c{i}", figures=False, **kwargs)
+        keys = set(cmp.comparison_keys(reference))
+        assert set(res) <= keys, (reference, set(res) - keys)
+        if "against" in reference:  # ... and no key compare never writes (a run against itself has all but warnings)
+            assert keys - set(res) == {"warnings"}
+
+
 def _cli(args, capsys):
     code = main(["compare", *map(str, args)])
     err = capsys.readouterr().err.strip()

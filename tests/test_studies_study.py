@@ -129,6 +129,40 @@ def test_a_bad_reference_is_refused_before_any_run(tmp_path, capsys, extra, word
                                f"metrics: [compare.terrain_rmse_m]\n{extra}\n", words)
 
 
+@pytest.mark.parametrize("metrics, reference, words", [
+    ("[compare.terrain_rmse]", "{terrain: scan.xyz}",
+     "metrics.0: compare.terrain_rmse: comparison.json has no 'terrain_rmse' with reference terrain; its keys: run,"),
+    ("[manifest.particles, compare.joints_rmse_rad]", "{terrain: scan.xyz}",  # a key of another reference
+     "metrics.1: compare.joints_rmse_rad: comparison.json has no 'joints_rmse_rad' with reference terrain;"),
+])
+def test_a_compare_metric_comparison_json_cannot_hold_is_refused_before_any_run(tmp_path, capsys, metrics,
+                                                                                reference, words):
+    """A misspelt compare.<key> (terrain_rmse for terrain_rmse_m) was an empty column and a blank panel."""
+    (tmp_path / "scan.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n")
+    _refused(tmp_path, capsys, "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
+                               f"metrics: {metrics}\nreference: {reference}\n", words)
+
+
+def test_a_compare_sub_key_the_comparison_lacks_is_an_error_naming_what_it_holds(tmp_path, monkeypatch):
+    """compare.joints.<joint>.<key> with a misspelt joint was an empty cell of a row marked done; a key comparison.json
+    may leave out (no second deepest point to measure between) stays an empty cell."""
+    from opera_taichi.studies import compare
+    from opera_taichi.studies.study import collect_metrics
+
+    result = {"run": "x", "joints": {"boom_joint": {"rate_ratio": 0.9, "lag_s": None}}, "joints_rmse_rad": 0.1,
+              "terrain_rmse_m": 0.05}
+    monkeypatch.setattr(compare, "compare", lambda *a, **k: result)
+    errors = {}
+    names = ["compare.joints.boom_joint.rate_ratio", "compare.joints.boom_joint.lag_s",
+             "compare.joints.boom_jiont.rate_ratio", "compare.max_depth_position_error_m"]
+    row = collect_metrics(tmp_path, names, {"against": str(tmp_path)}, errors)
+    assert row["compare.joints.boom_joint.rate_ratio"] == 0.9 and row["compare.joints.boom_joint.lag_s"] is None
+    assert row["compare.max_depth_position_error_m"] is None
+    assert set(errors) == {"compare.joints.boom_jiont.rate_ratio"}
+    assert "comparison.json has no 'joints.boom_jiont.rate_ratio': its joints holds boom_joint" in \
+        str(errors["compare.joints.boom_jiont.rate_ratio"])
+
+
 @pytest.mark.parametrize("metric, words", [
     ("{name: x, file: forces.csv, column: fx}",
      "metrics.0.file: expected a CSV file the runs write (soil_mass.csv, tool_wrench.csv), got 'forces.csv'"),

@@ -255,6 +255,10 @@ def _section(study, label: str, trials_override: int | None) -> dict:
         if m["name"].startswith("compare.") and not study.reference:
             raise UserError(f"{label}: calibrate.metric.name: compare.* metrics need a `reference` (terrain, joints "
                             f"or against)")
+        if m["name"].startswith("compare."):
+            from .study import check_compare_metric
+
+            check_compare_metric(m["name"], study.reference, f"{label}: calibrate.metric.name")
         spec["metric"] = m
     elif objective == "terrain" and "terrain" not in study.reference and "against" not in study.reference:
         raise UserError(f"{label}: reference.terrain: required with objective terrain (the scan to match)")

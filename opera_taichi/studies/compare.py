@@ -70,8 +70,34 @@ MIN_DIG_COVERAGE = 0.5     # a reference covering less of the dig area than this
 WARN_DIG_COVERAGE = 0.9    # ...less than this gets a warning (its volumes miss part of the dig)
 FIT_WARN_RESIDUAL_M = 0.05  # a fitted placement with a larger residual (good fits: ~0.02 m on DEM grain)...
 FIT_WARN_INLIERS = 0.5      # ...or fewer inliers than this (good fits: ~0.75) probably went wrong
+# the top-level keys comparison.json can hold (a study's compare.<key> metric is checked against them before any run;
+# test_studies_compare checks them against what compare writes)
+SURFACE_KEYS = ("cut_volume_m3", "fill_volume_m3", "max_depth_m", "max_depth_xy_m", "cut_centre_xy_m",
+                "heave_height_m", "heave_xy_m", "heave_side", "heave_offset_m")      # surface_metrics, run and reference
+TERRAIN_KEYS = ("cell_m", "change_threshold_m", "margin_m", "dig_area_m2", "dig_line", *SURFACE_KEYS)  # any run
+REFERENCE_TERRAIN_KEYS = ("compared_area_m2", *(f"reference_{k}" for k in SURFACE_KEYS), "terrain_rmse_m",
+                          "terrain_bias_m", "terrain_max_abs_error_m", "reference_empty_cells",
+                          "reference_coverage_of_dig_area", "cut_volume_relative_error", "fill_volume_relative_error",
+                          "max_depth_relative_error", "heave_height_relative_error", "max_depth_position_error_m")
+JOINT_KEYS = ("joints", "joints_common_span_s", "joints_rmse_rad", "joints_lag_s", "joints_rate_ratio")
 OUTPUT_FILES = (COMPARISON_FILE, PROFILE_FILE, "comparison_terrain.png", "comparison_profile.png",
                 "comparison_joints.png")  # all a compare writes: replaced together, never left from an earlier one
+
+
+def comparison_keys(reference: dict) -> list[str]:
+    """The top-level keys comparison.json can hold for a study's `reference` (its keys terrain, terrain_before,
+    joints, against): a run's own terrain block always (a run with soil), the reference's and the joints' blocks
+    when the reference has them."""
+    keys = ["run", "warnings", *TERRAIN_KEYS]
+    if "terrain" in reference or "against" in reference:
+        keys += REFERENCE_TERRAIN_KEYS
+    if "terrain" in reference:
+        keys += ["terrain_scan", "transform"] + (["terrain_scan_before"] if "terrain_before" in reference else [])
+    if "against" in reference:
+        keys.append("against")
+    if "joints" in reference or "against" in reference:
+        keys += [*JOINT_KEYS, *(["joint_log"] if "joints" in reference else [])]
+    return keys
 
 
 # ----------------------------------------------------------------------------------------------- run folders
