@@ -189,6 +189,25 @@ def test_study_png_plots_a_parameter_that_is_not_a_number_as_categories(tmp_path
     assert [t.get_text() for t in ax.get_xticklabels()] == ["dirt", "gravel", "sand"]
 
 
+def test_study_png_draws_failed_points_on_the_x_axis_not_on_the_data(tmp_path, monkeypatch):
+    """A diverged point's red x was drawn at the lowest finished point's value (with one finished point, on it), so
+    it read as a measurement; it sits on the x axis (axes fraction 0), and the y limits are the finished points'."""
+    from opera_taichi.studies import figures
+
+    figs = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.append(fig))
+    rows = [{"p": 1.0, "m": 5.0, "status": "done"}, {"p": 2.0, "m": None, "status": "diverged"}]
+    figures.plot_study(rows, ["p"], ["m"], tmp_path / "study.png")
+    ax = figs[0].axes[0]
+    points, failed = ax.lines
+    assert failed.get_label() == "failed" and list(failed.get_xdata()) == [2.0]
+    # where the marker lands, in axes fractions: the bottom edge
+    display = failed.get_transform().transform([[2.0, failed.get_ydata()[0]]])
+    assert ax.transAxes.inverted().transform(display)[0][1] == pytest.approx(0.0)
+    lo, hi = ax.get_ylim()
+    assert lo < 5.0 < hi
+
+
 def test_study_png_title_is_clear_of_the_panels(tmp_path, monkeypatch):
     from opera_taichi.studies import figures
 
