@@ -305,6 +305,29 @@ def test_comparison_keys_hold_every_key_compare_writes(tmp_path):
             assert keys - set(res) == {"warnings"}
 
 
+def test_a_joint_log_with_columns_that_name_no_joint_compares_on_the_joints(tmp_path, capsys):
+    """A field log's extra columns (an operating `mode` of text, a pump pressure) were parsed as joints and the text
+    refused the log; columns naming no joint of the run are not read, and a warning names them."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    with open(tmp_path / "log.csv", "w") as fh:
+        fh.write("t,mode,boom_joint,pressure_bar,arm_joint_deg\n")
+        for i in range(0, len(t), 2):
+            fh.write(f"{t[i]:.3f},dig,{q['boom_joint'][i]:.6f},210.5,{math.degrees(q['arm_joint'][i]):.5f}\n")
+    res = cmp.compare(run, joints=tmp_path / "log.csv", out=tmp_path / "c", figures=False)
+    assert set(res["joints"]) == {"boom_joint", "arm_joint"} and res["joints_rmse_rad"] < 1e-4
+    assert res["warnings"] == ["--joints: log.csv: columns mode, pressure_bar name no joint of the run (boom_joint, "
+                               "arm_joint): not read"]
+    assert "warning: --joints: log.csv: columns mode, pressure_bar" in capsys.readouterr().err
+    # a bad cell of a joint's column is still refused, on its line
+    text = (tmp_path / "log.csv").read_text().splitlines()
+    text[3] = text[3].replace(",dig,", ",dig,oops,", 1).replace(",210.5", "", 1)
+    (tmp_path / "log.csv").write_text("\n".join(text) + "\n")
+    code, err = _cli([run, "--joints", tmp_path / "log.csv", "--out", tmp_path / "c2"], capsys)
+    assert code == 2 and "log.csv: line 4, column boom_joint: expected a number, got 'oops'" in err, err
+
+
 def _cli(args, capsys):
     code = main(["compare", *map(str, args)])
     err = capsys.readouterr().err.strip()

@@ -126,7 +126,7 @@ def test_a_bad_reference_is_refused_before_any_run(tmp_path, capsys, extra, word
     (tmp_path / "empty.csv").write_text("")
     words = words.replace("{tmp}", str(tmp_path))
     _refused(tmp_path, capsys, "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
-                               f"metrics: [compare.terrain_rmse_m]\n{extra}\n", words)
+                               f"metrics: [compare.cut_volume_m3]\n{extra}\n", words)  # a key of any reference
 
 
 @pytest.mark.parametrize("metrics, reference, words", [
@@ -161,6 +161,21 @@ def test_a_compare_sub_key_the_comparison_lacks_is_an_error_naming_what_it_holds
     assert set(errors) == {"compare.joints.boom_jiont.rate_ratio"}
     assert "comparison.json has no 'joints.boom_jiont.rate_ratio': its joints holds boom_joint" in \
         str(errors["compare.joints.boom_jiont.rate_ratio"])
+
+
+def test_a_reference_joint_log_is_read_on_the_machines_joints_only(tmp_path, capsys):
+    """A joint log with a `mode` column of text was refused by the study before any run (as by compare); its
+    columns that name no joint of the scene's machine are not read, with a warning."""
+    log = tmp_path / "log.csv"
+    log.write_text("t,boom_joint,mode\n0,0.1,dig\n0.5,0.2,dig\n1.0,0.3,dump\n")
+    path = tmp_path / "s.yaml"
+    path.write_text(f"scene: {ROOT / 'scenes' / 'zx120_dig_cycle.yaml'}\n"
+                    "set: {sim.duration: 0.5, soil.overrides.radius: 0.16, output.plots: false}\n"
+                    "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
+                    "metrics: [compare.joints_rmse_rad]\nreference: {joints: log.csv}\n")
+    assert len(load_study(path).points) == 2
+    assert "warning: reference.joints: log.csv: column mode names no joint of the run (swing_joint, boom_joint," \
+        in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("metric, words", [

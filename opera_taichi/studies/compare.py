@@ -16,8 +16,9 @@ Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial
   trench, back = between the trench and the machine);
 - the dig line runs from the machine's base through the centre of the run's cut (cut-weighted); profile.csv samples
   it.
-Joints (a log with `t` and joints in rad or `_deg`, a ROS bag's sensor_msgs/JointState, or the other run's
-joints.csv), on their common time span resampled at `JOINT_DT`:
+Joints (a log with `t` and joints in rad or `_deg`, its columns naming no joint of the run left unread with a
+warning; a ROS bag's sensor_msgs/JointState, or the other run's joints.csv), on their common time span resampled at
+`JOINT_DT`:
 - a log in degrees under radian names is refused: a joint with limits (boom, arm, bucket) that reaches beyond a full
   turn and far beyond the run; any rotating joint that moves faster than RATE_MARGIN x its actuator's limit (the run's
   machine description, read from the files its manifest names; a joint with a speed limit, so not a prismatic one). A
@@ -349,9 +350,11 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
 
 
 # ----------------------------------------------------------------------------------------------- joints
-def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def read_joint_log(path, key: str = "--joints", joints=None,
+                   warnings: list | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(t, {joint: rad}) of a joint log: a CSV (`t` plus `<joint>` rad or `<joint>_deg`; a run's joints.csv too) or
-    a ROS bag (ROS 1 .bag, ROS 2 folder or .mcap/.db3) with sensor_msgs/JointState messages."""
+    a ROS bag (ROS 1 .bag, ROS 2 folder or .mcap/.db3) with sensor_msgs/JointState messages. `joints`: the run's
+    joint names; a CSV's columns that name none of them (a `mode` column of text) are not read, with a warning."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{key}: {path}: file not found")
@@ -360,7 +363,15 @@ def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, n
     from ..scene import CsvProblem, read_motion_csv
 
     try:
-        times, angles = read_motion_csv(path)
+        kept = _joint_columns_only(path, key, joints, warnings)
+        if kept is None:
+            times, angles = read_motion_csv(path)
+        else:
+            import tempfile
+
+            with tempfile.TemporaryDirectory() as tmp:
+                (Path(tmp) / path.name).write_text(kept, encoding="utf-8")
+                times, angles = read_motion_csv(Path(tmp) / path.name)
     except CsvProblem as exc:
         raise UserError(f"{key}: {path}: {exc}") from None
     except OSError as exc:
@@ -371,6 +382,64 @@ def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, n
     if t[0] > CLOCK_TIME_S:  # clock time: compared from its first sample, as a bag's times are
         t = t - t[0]
     return t, {j: np.asarray(v, float) for j, v in angles.items()}
+
+
+def _joint_columns_only(path: Path, key: str, joints, warnings: list | None) -> str | None:
+    """The CSV's text with t and the columns of the run's `joints` only (scene.read_motion_csv reads every column:
+    a log's `mode` column of text was refused), and a warning naming the others; None to read the file as it is
+    (nothing to leave out, no joints known, or a problem read_motion_csv names: size, encoding, no t)."""
+    import csv
+    import io
+
+    from ..scene import MAX_CSV_BYTES
+
+    if joints is None or path.stat().st_size > MAX_CSV_BYTES:
+        return None
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+    header = [c.strip() for c in rows[0]] if rows else []
+    if "t" not in header:
+        return None
+    recorded = any(n.endswith(".q") for n in header)  # a run's joints.csv: its other <joint>.* columns go unread
+    names = {}
+    for i, n in enumerate(header):
+        if n == "t" or (recorded and "." in n and not n.endswith(".q")):
+            continue
+        base = n[:-2] if recorded and n.endswith(".q") else n
+        names[i] = base[:-4] if base.endswith("_deg") else base
+    ignored = [header[i] for i, j in names.items() if j not in joints]
+    if not ignored:
+        return None
+    if len(ignored) == len(names):
+        raise UserError(f"{key}: {path} names no joint of the run (run: {', '.join(joints)}; log: "
+                        f"{', '.join(header[i] for i in names)})")
+    _warn(warnings if warnings is not None else [],
+          f"{key}: {path.name}: column{'s' * (len(ignored) > 1)} {', '.join(ignored)} name{'s' * (len(ignored) == 1)} "
+          f"no joint of the run ({', '.join(joints)}): not read")
+    keep = [i for i, n in enumerate(header) if n not in ignored]
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    for line, row in enumerate(rows, start=1):
+        if len(row) != len(header):  # as read_motion_csv counts and says it, for the whole row
+            raise UserError(f"{key}: {path}: line {line}: expected {len(header)} fields, got {len(row)}")
+        writer.writerow([row[i] for i in keep])
+    return out.getvalue()
+
+
+def run_joint_names(run_dir: Path) -> list[str] | None:
+    """The joints of a run's joints.csv (its `<joint>.q` columns), from its header; None without one."""
+    import csv
+
+    try:
+        with open(run_dir / "joints.csv", newline="", encoding="utf-8") as fh:
+            header = next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError):
+        return None
+    names = [n[:-2] for n in header if n.endswith(".q")]
+    return names or None
 
 
 def _read_bag(path: Path, key: str):
@@ -718,7 +787,7 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
             raise UserError(f"RUN_DIR: {run_dir} has no terrain_final.npz to compare the scan with")
     if joints is not None or (against is not None and (run_dir / "joints.csv").is_file()):
         if joints is not None:  # the user's file first: its problems are the ones to hear about
-            t_ref, q_ref = read_joint_log(joints)
+            t_ref, q_ref = read_joint_log(joints, joints=run_joint_names(run_dir), warnings=warnings)
             ref_label = Path(joints).name
             result["joint_log"] = str(Path(joints).resolve())
         else:

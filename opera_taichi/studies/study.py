@@ -331,17 +331,16 @@ def check_reference(reference: dict, label: str) -> None:
     if ("transform" in reference or fit is not None or "terrain_before" in reference) and "terrain" not in reference:
         raise UserError(f"{label}: reference: transform, fit_transform and terrain_before place a scan of the terrain; "
                         f"give reference.terrain (the scan after the dig)")
-    # the files themselves: an empty scan or a joint log without its columns is refused now, not after every run
-    from .compare import read_joint_log
+    # the files themselves: an empty scan is refused now, not after every run (a joint log: check_points, which
+    # knows the machine's joints, the only columns of it that are read)
     from .scan import read_scan
 
-    readers = [(k, read_scan) for k in ("terrain", "terrain_before") if k in reference]
-    readers += [("joints", read_joint_log)] if "joints" in reference else []
-    for key, read in readers:
-        try:
-            read(reference[key], key=f"reference.{key}")
-        except UserError as exc:
-            raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
+    for key in ("terrain", "terrain_before"):
+        if key in reference:
+            try:
+                read_scan(reference[key], key=f"reference.{key}")
+            except UserError as exc:
+                raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
     if "against" in reference:
         if any(k in reference for k in ("terrain", "terrain_before", "joints")):
             raise UserError(f"{label}: reference.against: compares with another run; give it without terrain, "
@@ -442,7 +441,16 @@ def check_points(study: Study, points: list[dict], label: str, names: list[str] 
             name = names[i] if names else "parameters: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in point.items())
             raise UserError(f"{label}: {name}: {' '.join(str(exc).split())}") from None
         if model is not None:
-            check_metric_columns(study.metrics, csv_columns(model), [b.name for b in model.bindings], label)
+            columns = csv_columns(model)
+            check_metric_columns(study.metrics, columns, [b.name for b in model.bindings], label)
+            if "joints" in study.reference:  # the log, read as compare reads it against these runs' joints
+                from .compare import read_joint_log
+
+                names = [c[:-2] for c in columns.get("joints.csv", ()) if c.endswith(".q")]
+                try:
+                    read_joint_log(study.reference["joints"], "reference.joints", names or None)
+                except UserError as exc:
+                    raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
 
 
 def bound_points(study: Study) -> tuple[list[dict], list[str]]:
