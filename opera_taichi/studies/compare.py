@@ -13,7 +13,8 @@ Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial
 - cut / fill: the volume below / above the initial surface, sum of max(0, -dz) dA and max(0, dz) dA;
 - max depth: the largest drop below the initial surface, and where; heave: the largest rise (the spoil beside
   the trench), where, and on which side of the trench as seen from the machine (left, right, front = beyond the
-  trench, back = between the trench and the machine);
+  trench, back = between the trench and the machine); the cells where the initial surface was a gap between grains
+  (summary.grain_gaps, with the run's grain radius) are left out of it;
 - the dig line runs from the machine's base through the centre of the run's cut (cut-weighted); profile.csv samples
   it.
 Joints (a log with `t` and joints in rad or `_deg`, its columns naming no joint of the run left unread with a
@@ -42,6 +43,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..recorders import read_csv_columns, write_json
+from ..summary import grain_gaps, grain_radius
 from . import scan as scans
 
 COMPARISON_FILE = "comparison.json"
@@ -119,12 +121,17 @@ def run_folder(path, key: str) -> Path:
     return path
 
 
+def _manifest(run_dir: Path) -> dict:
+    try:
+        data = json.loads((run_dir / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
 def machine_pose(run_dir: Path) -> tuple[np.ndarray | None, float]:
     """(base xy, yaw) of the run's (first) machine from its manifest; (None, 0) without a machine."""
-    try:
-        scene = json.loads((run_dir / "manifest.json").read_text()).get("scene", {})
-    except (OSError, ValueError):
-        return None, 0.0
+    scene = _manifest(run_dir).get("scene") or {}
     machine = scene.get("machine") or (scene.get("machines") or [None])[0]
     if not machine:
         return None, 0.0
@@ -147,8 +154,9 @@ def dig_area(changes, threshold: float, margin_cells: int) -> np.ndarray:
     return mask
 
 
-def surface_metrics(z0, z1, x, y, mask, base_xy, yaw) -> dict:
-    """Cut, fill, max depth and heave of z1 against z0 over the mask (NaN cells skipped)."""
+def surface_metrics(z0, z1, x, y, mask, base_xy, yaw, gaps=None) -> dict:
+    """Cut, fill, max depth and heave of z1 against z0 over the mask (NaN cells skipped); the heave leaves out `gaps`
+    (summary.grain_gaps of z0: cells where the bed floor showed through between grains, one of which rolled in)."""
     cell = abs((x[1] - x[0]) * (y[1] - y[0])) if len(x) > 1 and len(y) > 1 else 0.0
     dz = np.where(mask, z1 - z0, np.nan)
     valid = np.isfinite(dz)
@@ -166,9 +174,10 @@ def surface_metrics(z0, z1, x, y, mask, base_xy, yaw) -> dict:
         out.update(max_depth_m=float(-filled[i]), max_depth_xy_m=[float(gx[i]), float(gy[i])])
         cut = np.maximum(0.0, -filled)
         out["cut_centre_xy_m"] = [float(np.sum(cut * gx) / cut.sum()), float(np.sum(cut * gy) / cut.sum())]
-    k = np.unravel_index(int(np.argmax(filled)), dz.shape)
-    if filled[k] > 0:
-        out.update(heave_height_m=float(filled[k]), heave_xy_m=[float(gx[k]), float(gy[k])])
+    risen = filled if gaps is None else np.where(gaps, 0.0, filled)
+    k = np.unravel_index(int(np.argmax(risen)), dz.shape)
+    if risen[k] > 0:
+        out.update(heave_height_m=float(risen[k]), heave_xy_m=[float(gx[k]), float(gy[k])])
         cut = np.maximum(0.0, -filled)
         if cut.sum() > 0:  # side of the heave from the trench's centre, in the machine's frame
             centre = np.array([np.sum(cut * gx), np.sum(cut * gy)]) / cut.sum()
@@ -309,11 +318,12 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
                 _warn(warnings, f"{key}: {label} covers only {100 * coverage:.0f}% of the dig area ({where}): "
                                 f"volumes and depths are compared over the covered part only")
         out["compared_area_m2"] = float(compared.sum() * cell)
-    run = surface_metrics(z0, z1, x, y, compared, base_xy, yaw)
+    radius = grain_radius(None, _manifest(run_dir))
+    run = surface_metrics(z0, z1, x, y, compared, base_xy, yaw, grain_gaps(z0, abs(x[1] - x[0]), radius))
     out.update(run)
     arrays = dict(x=x, y=y, z0=z0, z1=z1, mask=mask, ref0=ref0, ref1=ref1, label=label)
     if ref1 is not None:
-        ref = surface_metrics(ref0, ref1, x, y, compared, base_xy, yaw)
+        ref = surface_metrics(ref0, ref1, x, y, compared, base_xy, yaw, grain_gaps(ref0, abs(x[1] - x[0]), radius))
         out.update({f"reference_{k}": v for k, v in ref.items()})
         both = mask & np.isfinite(ref1) & np.isfinite(z1)
         err = (z1 - ref1)[both]
