@@ -295,7 +295,8 @@ def test_comparison_keys_hold_every_key_compare_writes(tmp_path):
     joint_log(tmp_path / "log.csv", t, "boom_joint", q["boom_joint"])
     cases = [({"against": run}, dict(against=run)),
              ({"terrain": 1, "terrain_before": 1, "joints": 1},
-              dict(terrain=tmp_path / "after.npz", terrain_before=tmp_path / "before.npz", joints=tmp_path / "log.csv")),
+              dict(terrain=tmp_path / "after.npz", terrain_before=tmp_path / "before.npz",
+                   joints=tmp_path / "log.csv")),
              ({"joints": 1}, dict(joints=tmp_path / "log.csv"))]
     for i, (reference, kwargs) in enumerate(cases):
         res = cmp.compare(run, out=tmp_path / f"c{i}", figures=False, **kwargs)

@@ -75,8 +75,8 @@ FIT_WARN_RESIDUAL_M = 0.05  # a fitted placement with a larger residual (good fi
 FIT_WARN_INLIERS = 0.5      # ...or fewer inliers than this (good fits: ~0.75) probably went wrong
 # the top-level keys comparison.json can hold (a study's compare.<key> metric is checked against them before any run;
 # test_studies_compare checks them against what compare writes)
-SURFACE_KEYS = ("cut_volume_m3", "fill_volume_m3", "max_depth_m", "max_depth_xy_m", "cut_centre_xy_m",
-                "heave_height_m", "heave_xy_m", "heave_side", "heave_offset_m")      # surface_metrics, run and reference
+SURFACE_KEYS = ("cut_volume_m3", "fill_volume_m3", "max_depth_m", "max_depth_xy_m", "cut_centre_xy_m",  # of
+                "heave_height_m", "heave_xy_m", "heave_side", "heave_offset_m")  # surface_metrics: run, reference
 TERRAIN_KEYS = ("cell_m", "change_threshold_m", "margin_m", "dig_area_m2", "dig_line", *SURFACE_KEYS)  # any run
 REFERENCE_TERRAIN_KEYS = ("compared_area_m2", *(f"reference_{k}" for k in SURFACE_KEYS), "terrain_rmse_m",
                           "terrain_bias_m", "terrain_max_abs_error_m", "reference_empty_cells",
