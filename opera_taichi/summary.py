@@ -10,7 +10,8 @@ Definitions (also written into the summary under `definitions`):
 - soil held: the last `in_<tool>_kg` of soil_mass.csv (grain centres inside the tool's convex hull); m3 at the
   bulk density; a bucket's fill factor is that volume over its struck volume.
 - dug / heaped: the ground-only heightmaps `z` (grains in a tool's hull left out), final minus initial, summed over
-  the cells: dug = sum max(0, z0 - z1) dA, heaped = sum max(0, z1 - z0) dA.
+  the cells: dug = sum max(0, z0 - z1) dA, heaped = sum max(0, z1 - z0) dA. The highest heap leaves out the cells
+  that were gaps between grains at the start (grain_gaps): a grain rolling into one is no heap.
 - force: |F| of the soil on each tool (tool_wrench.csv); the mean is over the samples in contact (|F| > 1 N).
 - time at a limit: a joints.csv sample at the limit (|effort| >= 0.99 max_torque, |qd| >= 0.99 max_speed) counts
   for the interval to the next sample (t[i+1] - t[i]); the fraction is over the recorded span t[-1] - t[0].
@@ -61,6 +62,36 @@ def _terrain(path: Path) -> dict | None:
             return {k: data[k] for k in data.files}
     except (OSError, ValueError):
         return None
+
+
+def grain_radius(model, manifest: dict | None) -> float | None:
+    """The soil's mean grain radius (m): the model's, else the manifest's (soil.micro.radius); None without soil."""
+    radius = getattr(getattr(getattr(model, "soil", None), "params", None), "radius", None)
+    if radius is None:
+        try:
+            radius = manifest["soil"]["micro"]["radius"]
+        except (TypeError, KeyError):
+            return None
+    return _num(radius)
+
+
+def grain_gaps(z0, cell_m: float, radius_m: float | None) -> np.ndarray:
+    """Cells of an initial heightmap in a gap between grains (or between a grain and a pit wall), where the bed
+    floor shows through: more than a grain radius below the surface closed over a grain diameter (a disc no grain
+    enters). A grain rolling into one later rises there by most of the bed's depth, which is no heave (0.81 m with
+    32 cm grains). No cell without a radius."""
+    from scipy.ndimage import grey_closing
+
+    z0 = np.asarray(z0, float)
+    finite = np.isfinite(z0)
+    if not (radius_m and cell_m and radius_m > 0 and finite.any()):
+        return np.zeros(z0.shape, bool)
+    n = max(1, int(round(radius_m / cell_m)))
+    k = np.arange(-n, n + 1)
+    # an empty cell (a scan's) closes as the lowest one: it never makes its neighbours look like gaps
+    closed = grey_closing(np.where(finite, z0, np.nanmin(z0)), footprint=k[:, None] ** 2 + k[None, :] ** 2 <= n * n,
+                          mode="nearest")
+    return finite & (z0 < closed - radius_m)
 
 
 def interval_weights(t: np.ndarray) -> np.ndarray:
@@ -186,7 +217,7 @@ def _tools_part(model, mass_cols, wrench_cols, density) -> dict:
     return tools
 
 
-def _terrain_part(initial: dict, final: dict) -> dict | None:
+def _terrain_part(initial: dict, final: dict, radius: float | None = None) -> dict | None:
     x, y = np.asarray(initial["x"], float), np.asarray(initial["y"], float)
     z0, z1 = np.asarray(initial["z"], float), np.asarray(final["z"], float)
     if z0.shape != z1.shape or z0.shape != (len(x), len(y)):
@@ -197,7 +228,8 @@ def _terrain_part(initial: dict, final: dict) -> dict | None:
     dz = z1 - z0
     out = {"dug_m3": float(np.maximum(0.0, -dz).sum() * cell), "heaped_m3": float(np.maximum(0.0, dz).sum() * cell),
            "net_change_m3": float(dz.sum() * cell), "max_cut_depth_m": float(max(0.0, -dz.min())),
-           "max_heap_height_m": float(max(0.0, dz.max())), "cell_m2": cell, "heightmap": "z (soil on the ground)"}
+           "max_heap_height_m": float(max(0.0, np.where(grain_gaps(z0, abs(dx), radius), 0.0, dz).max())),
+           "cell_m2": cell, "heightmap": "z (soil on the ground)"}
     i, j = np.unravel_index(int(np.argmin(dz)), dz.shape)
     out["deepest_cut_xy_m"] = [float(x[i]), float(y[j])]
     if "z_all" in final:
@@ -248,7 +280,9 @@ DEFINITIONS = {
     "soil_held": "last in_<tool>_kg of soil_mass.csv: grain centres inside the tool's convex hull; m3 at the bulk "
                  "density; fill_factor = soil_held_m3 / struck_volume_m3",
     "terrain": "ground-only heightmap z (grains inside a tool's hull left out), final minus initial: dug = sum "
-               "max(0, z0 - z1) dA, heaped = sum max(0, z1 - z0) dA",
+               "max(0, z0 - z1) dA, heaped = sum max(0, z1 - z0) dA; max_heap_height_m leaves out the cells that "
+               "were gaps between grains at the start (more than a grain radius below the initial surface closed "
+               "over a grain diameter: the bed floor showing through)",
     "force": "|F| of the soil on the tool; mean_force_in_contact_N averages the samples with |F| > 1 N",
     "limits": "a joints.csv sample with |effort| >= 0.99 max_torque (|qd| >= 0.99 max_speed) counts for the "
               "interval to the next sample; fractions are of the recorded span",
@@ -276,7 +310,7 @@ def summarize(run_dir, model=None) -> dict:
 
     initial, final = _terrain(run_dir / "terrain_initial.npz"), _terrain(run_dir / "terrain_final.npz")
     if initial is not None and final is not None:
-        terrain = _terrain_part(initial, final)
+        terrain = _terrain_part(initial, final, grain_radius(model, manifest))
         if terrain is not None:
             summary["terrain"] = terrain
 

@@ -82,6 +82,8 @@ def no_trials(monkeypatch):
      "calibrate.metric.name: summary.tools.bucket.soil_held_kg: the runs have no tool 'bucket' (tools: blade)"),
     ("objective: metric\n  metric: {name: wrench.blade.fx, target: 1000}", [],
      "calibrate.metric.name: expected wrench.<tool>.<column>.<stat>"),
+    ("objective: force\n  force: {file: force.csv, tool: blade, column: fx, t: [0.05, 0.5]}", [],  # 0.3 s trials
+     "calibrate.force.t: [0.05, 0.5] ends after the trials' end at sim.duration 0.3 s"),
     (f"objective: force\n  refine: true\n  trials: 3\n  force: {FORCE}", [],
      "calibrate.refine: true needs trials >= 4 (3 to fit, then the refined one), got 3;"),
     (f"objective: force\n  refine: true\n  trials: 8\n  force: {FORCE}", ["--trials", "2"],
@@ -95,6 +97,82 @@ def test_settings_no_trial_can_fix_are_refused_before_the_first(tmp_path, capsys
     err = capsys.readouterr().err.strip()
     assert words in err and "\n" not in err, err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("row, words", [
+    ("0.06,blade,nan", "force.csv: line 5, column fx: expected a finite number, got 'nan'"),
+    ("0.06,blade,", "force.csv: line 5, column fx: expected a finite number, got ''"),
+    ("0.06,blade", "force.csv: line 5: expected 3 fields (as the header), got 2"),
+])
+def test_a_measured_force_curve_with_a_bad_cell_is_refused_naming_its_line(tmp_path, capsys, no_trials, row, words):
+    """A NaN or empty force cell passed the check and scored every trial nan ("no trial finished"), an empty one
+    read as "no numeric column 'fx'", and a short row was dropped: each is refused before the first trial."""
+    path = _calibration(tmp_path, "bad", COHESION)
+    lines = (tmp_path / "force.csv").read_text().splitlines()
+    lines[4] = row  # line 5 of the file
+    (tmp_path / "force.csv").write_text("\n".join(lines) + "\n")
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "calibrate.force.file: " in err and words in err and "\n" not in err, err
+
+
+def test_a_measured_force_header_with_spaces_after_the_commas_is_read(tmp_path, no_trials):
+    from opera_taichi.studies.calibrate import calibrate
+
+    path = _calibration(tmp_path, "spaced", COHESION)
+    text = (tmp_path / "force.csv").read_text()
+    (tmp_path / "force.csv").write_text(text.replace("t,tool,fx", "t, tool, fx", 1))
+    with pytest.raises(_TrialStarted):  # every check passed: the first trial was about to start
+        calibrate(path, out=tmp_path / "out")
+
+
+def test_a_compare_metric_objective_comparison_json_cannot_hold_is_refused_before_the_first(tmp_path, capsys,
+                                                                                          no_trials):
+    """objective: metric on a misspelt compare.<key> simulated every trial, then said "no trial finished"."""
+    path = _calibration(tmp_path, "cmp", "parameters: {soil.overrides.cohesion: {low: 0, high: 2000}}\n  trials: 1\n"
+                        "  objective: metric\n  metric: {name: compare.terrain_rmse, target: 0.0}")
+    (tmp_path / "scan.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n")
+    path.write_text(path.read_text() + "reference: {terrain: scan.xyz}\n")
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "calibrate.metric.name: compare.terrain_rmse: comparison.json has no 'terrain_rmse' with reference " \
+           "terrain; its keys: " in err and "terrain_rmse_m" in err and "\n" not in err, err
+
+
+def test_a_force_window_past_the_runs_end_is_not_scored(tmp_path):
+    """A run whose force stops before the window does (a trial cut short, a duration the window outlasts): its force
+    held at the last sample was scored as if measured; now it is refused, naming calibrate.force.t."""
+    from opera_taichi.errors import UserError
+    from opera_taichi.studies.calibrate import objective_value
+
+    _calibration(tmp_path, "x", COHESION)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "tool_wrench.csv").write_text("t,tool,fx\n" + "".join(f"{0.02 * i:.2f},blade,{500 + 40 * i}\n"
+                                                                  for i in range(11)))  # 0 .. 0.2 s
+    spec = {"objective": "force", "force": {"file": str(tmp_path / "force.csv"), "tool": "blade", "column": "fx",
+                                            "t": [0.05, 0.3], "smooth_s": 0.05}}
+    with pytest.raises(UserError, match=r"calibrate\.force\.t: .* the run's force spans 0-0.2 s"):
+        objective_value(run, spec)
+    spec["force"]["t"] = [0.05, 0.2]  # within it: scored (the same curve: only the smoothing at its end differs)
+    assert objective_value(run, spec)["loss"] < 0.02
+
+
+def test_a_preset_file_another_calibration_wrote_is_not_overwritten(tmp_path, capsys, no_trials):
+    """preset_file is the study file's, whatever --out: a second calibration into another folder overwrote the
+    first's preset. It is refused before the first trial; the calibration that wrote it (same out) goes on."""
+    from opera_taichi.studies.calibrate import calibrate
+
+    path = _calibration(tmp_path, "fit", COHESION + "\n  preset_file: fitted.yaml")
+    first = f"preset: sand\ncohesion: 800.0\ncalibration: {{out: {tmp_path / 'first'}, loss: 0.1}}\n"
+    (tmp_path / "fitted.yaml").write_text(first)
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "second")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"calibrate.preset_file: {tmp_path / 'fitted.yaml'} holds the preset of the calibration in " \
+           f"{tmp_path / 'first'}; give another preset_file" in err and "\n" not in err, err
+    assert (tmp_path / "fitted.yaml").read_text() == first and not (tmp_path / "second").exists()
+    with pytest.raises(_TrialStarted):  # its own calibration's folder: every check passed
+        calibrate(path, out=tmp_path / "first")
 
 
 def test_refine_by_default_with_too_few_trials_says_it_is_off(tmp_path, capsys, no_trials):
@@ -118,6 +196,7 @@ def test_written_preset_reproduces_the_best_trials_soil(fitted):
     result = json.loads((folder / "out" / "calibration.json").read_text())
     preset = yaml.safe_load(Path(result["preset_file"]).read_text())
     assert preset["friction_angle_deg"] == 38.5 and preset["density"] == 1700.0
+    assert preset["calibration"]["out"] == str((folder / "out").resolve())  # whose it is: see _check_preset
     with open(folder / "out" / "calibration.csv", newline="") as fh:
         (row,) = list(csv.DictReader(fh))
     run_dir = Path(row["run_dir"])
@@ -131,7 +210,8 @@ def test_written_preset_reproduces_the_best_trials_soil(fitted):
 
 @pytest.mark.parametrize("change, words", [
     (lambda t: t.replace("t: [0.05, 0.3]", "t: [0.1, 0.3]"), "another calibrate.force.t;"),
-    (lambda t: t.replace("sim.duration: 0.3", "sim.duration: 0.25"), "another set.sim.duration, scene;"),
+    # (longer: a duration shorter than the force window is refused before the journal is read)
+    (lambda t: t.replace("sim.duration: 0.3", "sim.duration: 0.35"), "another set.sim.duration, scene;"),
     (lambda t: t.replace("high: 2000", "high: 3000"), "another calibrate.parameters.soil.overrides.cohesion;"),
     (lambda t: t.replace("objective: force", "objective: metric\n  metric: {name: wrench.blade.fx.mean, "
                                              "target: 900}"), "another calibrate.objective, calibrate.force,"),

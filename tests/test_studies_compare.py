@@ -268,6 +268,90 @@ def test_a_run_killed_while_it_wrote_joints_csv_compares_on_its_whole_rows(tmp_p
         assert code == 2 and words in err and "\n" not in err, err
 
 
+def test_the_rate_ratio_of_a_log_offset_in_time_compares_the_same_motion(tmp_path):
+    """The run's own joints logged 0.5 s later: lag -0.5 s and rate ratio 1. The arm moves fast for its first 1.5 s
+    (12% of the run), then creeps: rated on the common span before the shift, the run lost a third of its fast
+    phase and its 90th percentile fell into the creep (a ratio of about 0.1)."""
+    t = np.arange(0.0, 12.0, 0.01)
+    fast = 1.5 * 0.5 * (1.0 - np.cos(math.pi * np.minimum(t / 1.5, 1.0)))
+    q = {"arm_joint": fast + 0.02 * np.maximum(t - 1.5, 0.0)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    joint_log(tmp_path / "late.csv", t + 0.5, "arm_joint", q["arm_joint"])
+    res = cmp.compare(run, joints=tmp_path / "late.csv", out=tmp_path / "late", figures=False)
+    arm = res["joints"]["arm_joint"]
+    assert arm["lag_s"] == pytest.approx(-0.5, abs=0.011)
+    assert arm["rate_ratio"] == pytest.approx(1.0, abs=0.02)
+
+
+def test_comparison_keys_hold_every_key_compare_writes(tmp_path):
+    """A study checks compare.<key> metrics against comparison_keys before any run: every key a comparison writes
+    must be there, for each kind of reference."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    gx, gy = np.meshgrid(X, Y, indexing="ij")
+    np.savez(tmp_path / "before.npz", x=X, y=Y, z=ground(gx, gy))
+    np.savez(tmp_path / "after.npz", x=X, y=Y, z=ground(gx, gy) + trench(gx, gy))
+    joint_log(tmp_path / "log.csv", t, "boom_joint", q["boom_joint"])
+    cases = [({"against": run}, dict(against=run)),
+             ({"terrain": 1, "terrain_before": 1, "joints": 1},
+              dict(terrain=tmp_path / "after.npz", terrain_before=tmp_path / "before.npz",
+                   joints=tmp_path / "log.csv")),
+             ({"joints": 1}, dict(joints=tmp_path / "log.csv"))]
+    for i, (reference, kwargs) in enumerate(cases):
+        res = cmp.compare(run, out=tmp_path / f"c{i}", figures=False, **kwargs)
+        keys = set(cmp.comparison_keys(reference))
+        assert set(res) <= keys, (reference, set(res) - keys)
+        if "against" in reference:  # ... and no key compare never writes (a run against itself has all but warnings)
+            assert keys - set(res) == {"warnings"}
+
+
+def test_a_joint_log_with_columns_that_name_no_joint_compares_on_the_joints(tmp_path, capsys):
+    """A field log's extra columns (an operating `mode` of text, a pump pressure) were parsed as joints and the text
+    refused the log; columns naming no joint of the run are not read, and a warning names them."""
+    t = np.arange(0.0, 20.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    with open(tmp_path / "log.csv", "w") as fh:
+        fh.write("t,mode,boom_joint,pressure_bar,arm_joint_deg\n")
+        for i in range(0, len(t), 2):
+            fh.write(f"{t[i]:.3f},dig,{q['boom_joint'][i]:.6f},210.5,{math.degrees(q['arm_joint'][i]):.5f}\n")
+    res = cmp.compare(run, joints=tmp_path / "log.csv", out=tmp_path / "c", figures=False)
+    assert set(res["joints"]) == {"boom_joint", "arm_joint"} and res["joints_rmse_rad"] < 1e-4
+    assert res["warnings"] == ["--joints: log.csv: columns mode, pressure_bar name no joint of the run (boom_joint, "
+                               "arm_joint): not read"]
+    assert "warning: --joints: log.csv: columns mode, pressure_bar" in capsys.readouterr().err
+    # a bad cell of a joint's column is still refused, on its line
+    text = (tmp_path / "log.csv").read_text().splitlines()
+    text[3] = text[3].replace(",dig,", ",dig,oops,", 1).replace(",210.5", "", 1)
+    (tmp_path / "log.csv").write_text("\n".join(text) + "\n")
+    code, err = _cli([run, "--joints", tmp_path / "log.csv", "--out", tmp_path / "c2"], capsys)
+    assert code == 2 and "log.csv: line 4, column boom_joint: expected a number, got 'oops'" in err, err
+
+
+def test_a_grain_rolling_into_a_gap_of_the_initial_bed_is_no_heave(tmp_path):
+    """With 32 cm grains the initial heightmap drops to the bed floor (1 m down) in gaps between grains at a pit
+    wall; a grain rolling in later made that cell the heave (0.81 m against a 0.17 m spoil heap). Cells more than a
+    grain radius below the initial surface closed over a grain diameter are left out of the heave, for the run and
+    for the reference measured from the same initial surface; the spoil mound is found."""
+    run = make_run(tmp_path / "run")
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["soil"] = {"micro": {"radius": 0.16}}
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    gx, gy = np.meshgrid(X, Y, indexing="ij")
+    z0, z1 = ground(gx, gy), ground(gx, gy) + trench(gx, gy) + heave(gx, gy)
+    gap = (np.abs(gx - 8.0) < 0.08) & (np.abs(gy + 1.0) < 0.03)   # 3 cells along x: narrower than a grain
+    z0[gap] -= 1.0
+    for name, z in (("terrain_initial.npz", z0), ("terrain_final.npz", z1)):
+        np.savez_compressed(run / name, x=X, y=Y, z=z, z_all=z, t=0.0)
+    res = cmp.compare(run, against=run, out=tmp_path / "c", figures=False)
+    for prefix in ("", "reference_"):
+        assert res[f"{prefix}heave_height_m"] == pytest.approx(HEAVE["h"], abs=0.01)
+        hx, hy = res[f"{prefix}heave_xy_m"]
+        assert abs(hx - HEAVE["xc"]) <= CELL + 1e-9 and abs(hy - HEAVE["yc"]) <= CELL + 1e-9
+    assert res["fill_volume_m3"] > truth()["fill"] + 0.9 * gap.sum() * CELL ** 2  # the volume still counts it
+
+
 def _cli(args, capsys):
     code = main(["compare", *map(str, args)])
     err = capsys.readouterr().err.strip()

@@ -126,7 +126,56 @@ def test_a_bad_reference_is_refused_before_any_run(tmp_path, capsys, extra, word
     (tmp_path / "empty.csv").write_text("")
     words = words.replace("{tmp}", str(tmp_path))
     _refused(tmp_path, capsys, "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
-                               f"metrics: [compare.terrain_rmse_m]\n{extra}\n", words)
+                               f"metrics: [compare.cut_volume_m3]\n{extra}\n", words)  # a key of any reference
+
+
+@pytest.mark.parametrize("metrics, reference, words", [
+    ("[compare.terrain_rmse]", "{terrain: scan.xyz}",
+     "metrics.0: compare.terrain_rmse: comparison.json has no 'terrain_rmse' with reference terrain; its keys: run,"),
+    ("[manifest.particles, compare.joints_rmse_rad]", "{terrain: scan.xyz}",  # a key of another reference
+     "metrics.1: compare.joints_rmse_rad: comparison.json has no 'joints_rmse_rad' with reference terrain;"),
+])
+def test_a_compare_metric_comparison_json_cannot_hold_is_refused_before_any_run(tmp_path, capsys, metrics,
+                                                                                reference, words):
+    """A misspelt compare.<key> (terrain_rmse for terrain_rmse_m) was an empty column and a blank panel."""
+    (tmp_path / "scan.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n")
+    _refused(tmp_path, capsys, "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
+                               f"metrics: {metrics}\nreference: {reference}\n", words)
+
+
+def test_a_compare_sub_key_the_comparison_lacks_is_an_error_naming_what_it_holds(tmp_path, monkeypatch):
+    """compare.joints.<joint>.<key> with a misspelt joint was an empty cell of a row marked done; a key comparison.json
+    may leave out (no second deepest point to measure between) stays an empty cell."""
+    from opera_taichi.studies import compare
+    from opera_taichi.studies.study import collect_metrics
+
+    result = {"run": "x", "joints": {"boom_joint": {"rate_ratio": 0.9, "lag_s": None}}, "joints_rmse_rad": 0.1,
+              "terrain_rmse_m": 0.05}
+    monkeypatch.setattr(compare, "compare", lambda *a, **k: result)
+    errors = {}
+    names = ["compare.joints.boom_joint.rate_ratio", "compare.joints.boom_joint.lag_s",
+             "compare.joints.boom_jiont.rate_ratio", "compare.max_depth_position_error_m"]
+    row = collect_metrics(tmp_path, names, {"against": str(tmp_path)}, errors)
+    assert row["compare.joints.boom_joint.rate_ratio"] == 0.9 and row["compare.joints.boom_joint.lag_s"] is None
+    assert row["compare.max_depth_position_error_m"] is None
+    assert set(errors) == {"compare.joints.boom_jiont.rate_ratio"}
+    assert "comparison.json has no 'joints.boom_jiont.rate_ratio': its joints holds boom_joint" in \
+        str(errors["compare.joints.boom_jiont.rate_ratio"])
+
+
+def test_a_reference_joint_log_is_read_on_the_machines_joints_only(tmp_path, capsys):
+    """A joint log with a `mode` column of text was refused by the study before any run (as by compare); its
+    columns that name no joint of the scene's machine are not read, with a warning."""
+    log = tmp_path / "log.csv"
+    log.write_text("t,boom_joint,mode\n0,0.1,dig\n0.5,0.2,dig\n1.0,0.3,dump\n")
+    path = tmp_path / "s.yaml"
+    path.write_text(f"scene: {ROOT / 'scenes' / 'zx120_dig_cycle.yaml'}\n"
+                    "set: {sim.duration: 0.5, soil.overrides.radius: 0.16, output.plots: false}\n"
+                    "parameters: {soil.overrides.friction_angle_deg: [30, 35]}\n"
+                    "metrics: [compare.joints_rmse_rad]\nreference: {joints: log.csv}\n")
+    assert len(load_study(path).points) == 2
+    assert "warning: reference.joints: log.csv: column mode names no joint of the run (swing_joint, boom_joint," \
+        in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("metric, words", [
@@ -153,6 +202,25 @@ def test_study_png_plots_a_parameter_that_is_not_a_number_as_categories(tmp_path
     assert list(points.get_xdata()) == [0, 1] and list(points.get_ydata()) == [2.0, 3.0]
     assert list(failed.get_xdata()) == [2]
     assert [t.get_text() for t in ax.get_xticklabels()] == ["dirt", "gravel", "sand"]
+
+
+def test_study_png_draws_failed_points_on_the_x_axis_not_on_the_data(tmp_path, monkeypatch):
+    """A diverged point's red x was drawn at the lowest finished point's value (with one finished point, on it), so
+    it read as a measurement; it sits on the x axis (axes fraction 0), and the y limits are the finished points'."""
+    from opera_taichi.studies import figures
+
+    figs = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.append(fig))
+    rows = [{"p": 1.0, "m": 5.0, "status": "done"}, {"p": 2.0, "m": None, "status": "diverged"}]
+    figures.plot_study(rows, ["p"], ["m"], tmp_path / "study.png")
+    ax = figs[0].axes[0]
+    points, failed = ax.lines
+    assert failed.get_label() == "failed" and list(failed.get_xdata()) == [2.0]
+    # where the marker lands, in axes fractions: the bottom edge
+    display = failed.get_transform().transform([[2.0, failed.get_ydata()[0]]])
+    assert ax.transAxes.inverted().transform(display)[0][1] == pytest.approx(0.0)
+    lo, hi = ax.get_ylim()
+    assert lo < 5.0 < hi
 
 
 def test_study_png_title_is_clear_of_the_panels(tmp_path, monkeypatch):

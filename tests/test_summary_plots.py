@@ -115,6 +115,24 @@ def test_dug_and_heaped_volumes_are_the_ground_heightmap_difference(run, summary
     assert terrain["above_ground_in_tools_m3"] > 0.0
 
 
+def test_the_highest_heap_leaves_out_gaps_of_the_initial_bed(tmp_path):
+    """summary.json's max_heap_height_m was a grain rolled into a gap where the initial heightmap showed the bed
+    floor (0.81 m with 32 cm grains); such cells (more than a grain radius below the initial surface closed over a
+    grain diameter) are left out of it, not out of the heaped volume."""
+    x, y = np.arange(40) * 0.05, np.arange(30) * 0.05
+    z0 = np.full((40, 30), -0.2)
+    z0[20:23, 14] = -1.0                      # a gap 3 cells (15 cm) long: the bed floor
+    z1 = z0.copy()
+    z1[20:23, 14] = -0.25                     # a grain rolled in
+    z1[5:8, 5:8] += 0.12                      # a heap of a grain or so
+    for name, z in (("terrain_initial.npz", z0), ("terrain_final.npz", z1)):
+        np.savez(tmp_path / name, x=x, y=y, z=z, t=0.0)
+    (tmp_path / "manifest.json").write_text(json.dumps({"status": "done", "soil": {"micro": {"radius": 0.16}}}))
+    terrain = summarize(tmp_path)["terrain"]
+    assert terrain["max_heap_height_m"] == pytest.approx(0.12)
+    assert terrain["heaped_m3"] == pytest.approx((9 * 0.12 + 3 * 0.75) * 0.05 ** 2)
+
+
 def test_time_at_the_actuator_limits_agrees_with_joints_csv(run, summary):
     run_dir, _ = run
     cols = read_csv_columns(run_dir / "joints.csv")

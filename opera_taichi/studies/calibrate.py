@@ -17,7 +17,10 @@ The study file's `calibrate` section (its scene, set, reference and out as for `
 Objectives (the loss, smaller is better):
 - force: RMS of the run's force curve minus the measured one (both smoothed by a moving average of smooth_s, on the
   measured samples inside t), over the measured curve's RMS. The measured CSV has `t` and `column`; a `tool` column,
-  when there is one (a run's tool_wrench.csv), selects the rows of `tool`;
+  when there is one (a run's tool_wrench.csv), selects the rows of `tool`. Every row as long as the header, t and the
+  force finite numbers (else refused before the first trial, naming line and column); header names are stripped.
+  A window t ending after the trials' sim.duration is refused before the first trial, a run's force that stops
+  before the window's measured samples do when it is scored;
 - terrain: compare's terrain_rmse_m against the study's reference scan; joints: compare's joints_rmse_rad against
   its joint log; metric: |metric - target| / |target|.
 Refinement: with `refine`, the last trial is not sampled but placed where a fit through the trials so far puts the
@@ -28,7 +31,9 @@ trials (per parameter, kept inside the bounds). The result is a trial like any o
 Resumable: the trials live in <out>/optuna.journal (Optuna's journal storage); a rerun adds trials up to `trials`,
 only to the same calibration (the fingerprint in the Optuna study's user attrs: set, scene, parameter space,
 objective); another is refused, naming what differs.
-The preset file reproduces the best trial's soil: the scene's preset file, overrides and the calibrated values.
+The preset file reproduces the best trial's soil: the scene's preset file, overrides and the calibrated values. A
+preset_file is relative to the study file and moves with nothing else: outside <out>, one that exists is overwritten
+only when this calibration wrote it (its `calibration.out` is this <out>), else refused before the first trial.
 """
 from __future__ import annotations
 
@@ -62,18 +67,60 @@ def _smooth_on(t, v, t_eval, width):
     return (np.interp(hi, t, c) - np.interp(lo, t, c)) / span
 
 
-def read_force_curve(path, column: str, tool: str | None) -> tuple[np.ndarray, np.ndarray]:
+def read_measured_csv(path: Path, numeric: tuple, text: tuple = (), key: str = "calibrate.force.file"):
+    """(header, {column: values}) of a measured CSV, header names stripped of spaces: the `numeric` columns it has as
+    float arrays, the `text` ones as lists. A row of another length than the header, or a cell of a numeric column
+    that is not a finite number, is refused naming its line and column (a NaN or an empty force cell scored every
+    trial nan; a short row was dropped)."""
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = [(line, row) for line, row in enumerate(csv.reader(fh), start=1) if any(c.strip() for c in row)]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise UserError(f"{key}: {path}: unreadable ({type(exc).__name__})") from None
+    if not rows:
+        raise UserError(f"{key}: {path}: empty; expected a header naming `t` and the force column")
+    header = [c.strip() for c in rows[0][1]]
+    where = {n: header.index(n) for n in (*numeric, *text) if n in header}
+    cols: dict = {n: [] for n in where}
+    for line, row in rows[1:]:
+        if len(row) != len(header):
+            raise UserError(f"{key}: {path}: line {line}: expected {len(header)} fields (as the header), got "
+                            f"{len(row)}")
+        for name, i in where.items():
+            cell = row[i].strip()
+            if name in text:
+                cols[name].append(cell)
+                continue
+            try:
+                value = float(cell)
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value):
+                raise UserError(f"{key}: {path}: line {line}, column {name}: expected a finite number, got {cell!r}")
+            cols[name].append(value)
+    return header, {n: v if n in text else np.asarray(v, float) for n, v in cols.items()}
+
+
+def read_force_curve(path, column: str, tool: str | None, measured: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(t, force) of a force CSV: the measured one (checked cell by cell: read_measured_csv), or a run's
+    tool_wrench.csv (measured=False: a row cut short by a killed run is left out, as wherever a run is read)."""
     from ..recorders import read_csv_columns
 
     path = Path(path)
-    try:
-        cols = read_csv_columns(path)
-    except (OSError, IndexError, ValueError, UnicodeDecodeError) as exc:
-        raise UserError(f"calibrate.force.file: {path}: unreadable ({type(exc).__name__})") from None
+    if measured:
+        header, cols = read_measured_csv(path, ("t", column), ("tool",) if column != "tool" else ())
+    else:
+        try:
+            cols = read_csv_columns(path)
+        except (OSError, IndexError, ValueError, UnicodeDecodeError) as exc:
+            raise UserError(f"calibrate.force.file: {path}: unreadable ({type(exc).__name__})") from None
+        header = list(cols)
     if "t" not in cols:
-        raise UserError(f"calibrate.force.file: {path}: header has no `t` column (got {', '.join(cols)})")
+        raise UserError(f"calibrate.force.file: {path}: header has no `t` column (got {', '.join(header)})")
     if column not in cols or isinstance(cols[column], list):
-        raise UserError(f"calibrate.force.column: {path} has no numeric column {column!r} (got {', '.join(cols)})")
+        raise UserError(f"calibrate.force.column: {path} has no numeric column {column!r} (got {', '.join(header)})")
     keep = np.ones(len(cols["t"]), bool)
     if tool is not None and "tool" in cols:
         keep = np.array([str(c) == tool for c in cols["tool"]])
@@ -91,11 +138,16 @@ def objective_value(run_dir: Path, spec: dict) -> dict:
     if kind == "force":
         f = spec["force"]
         t_ref, f_ref = read_force_curve(f["file"], f.get("column", "fx"), f.get("tool"))
-        t_run, f_run = read_force_curve(run_dir / "tool_wrench.csv", f.get("column", "fx"), f.get("tool"))
+        t_run, f_run = read_force_curve(run_dir / "tool_wrench.csv", f.get("column", "fx"), f.get("tool"),
+                                         measured=False)
         window = f.get("t") or [max(t_ref[0], t_run[0]), min(t_ref[-1], t_run[-1])]
         te = t_ref[(t_ref >= window[0]) & (t_ref <= window[1])]
         if len(te) < 3:
             raise UserError(f"calibrate.force.t: fewer than 3 measured samples in {window}")
+        step = float(np.median(np.diff(t_run)))
+        if te[-1] > t_run[-1] + step or te[0] < t_run[0] - step:  # beyond them the run's force is held, not measured
+            raise UserError(f"calibrate.force.t: the window {window} holds measured samples from {te[0]:g} to "
+                            f"{te[-1]:g} s, the run's force spans {t_run[0]:g}-{t_run[-1]:g} s; give t within it")
         w = float(f.get("smooth_s", 0.2))
         a, b = _smooth_on(t_run, f_run, te, w), _smooth_on(t_ref, f_ref, te, w)
         scale_ = float(np.sqrt(np.mean(b ** 2))) or 1.0
@@ -203,6 +255,10 @@ def _section(study, label: str, trials_override: int | None) -> dict:
         if m["name"].startswith("compare.") and not study.reference:
             raise UserError(f"{label}: calibrate.metric.name: compare.* metrics need a `reference` (terrain, joints "
                             f"or against)")
+        if m["name"].startswith("compare."):
+            from .study import check_compare_metric
+
+            check_compare_metric(m["name"], study.reference, f"{label}: calibrate.metric.name")
         spec["metric"] = m
     elif objective == "terrain" and "terrain" not in study.reference and "against" not in study.reference:
         raise UserError(f"{label}: reference.terrain: required with objective terrain (the scan to match)")
@@ -262,6 +318,40 @@ def _check_outputs(study, cfg: dict, points: list[dict], label: str) -> None:
         elif " no tool " in detail:  # the tool named in a summary key
             detail = f"{spec['metric']['name']}: the runs have no tool{detail.split(' no tool', 1)[1]}"
         raise UserError(f"{label}: {key}: {detail}") from None
+
+
+def _check_preset(path: Path, study, label: str) -> None:
+    """A preset_file outside the calibration's folder is written only when it is new or this calibration's own (its
+    `calibration.out` names this folder): a second calibration into another --out overwrote the first's preset."""
+    import yaml
+
+    if not path.exists() or study.out in path.parents:
+        return
+    try:
+        block = yaml.safe_load(path.read_text()).get("calibration")
+    except (OSError, ValueError, AttributeError, yaml.YAMLError):
+        block = None
+    owner = block.get("out") if isinstance(block, dict) else None
+    if owner == str(study.out):
+        return
+    what = f"the preset of the calibration in {owner}" if owner else "a file this calibration did not write"
+    raise UserError(f"{label}: calibrate.preset_file: {path} holds {what}; give another preset_file (or remove it)")
+
+
+def _check_window(study, cfg: dict, label: str) -> None:
+    """A force window t that ends after the trials' sim.duration is refused: the run's force would be held at its
+    last sample over the rest (a loss of a curve the run never made). The calibrated soil values leave the duration
+    as the study's `set` and scene give it."""
+    from ..scene import load_scene
+    from .study import overrides
+
+    window = (cfg["spec"].get("force") or {}).get("t")
+    if cfg["spec"]["objective"] != "force" or window is None:
+        return
+    duration = load_scene(study.scene, overrides(study, {})).sim.duration
+    if window[1] > duration:
+        raise UserError(f"{label}: calibrate.force.t: {window} ends after the trials' end at sim.duration {duration:g} "
+                        f"s; give t: [t0, t1] with t1 <= {duration:g} (or a longer sim.duration in `set`)")
 
 
 def _sampler(kind: str, seed: int, trials: int):
@@ -390,8 +480,10 @@ def calibrate(path, scheduler: str | None = None, workers: int | None = None, ou
     study = load_study(path, out)
     check_out_folder(study.out, study.name, str(path), calibrate=True)
     cfg = _section(study, label, trials)
+    _check_preset(cfg["preset"], study, label)
     params = cfg["params"]
     _check_outputs(study, cfg, [{p.path: scale(p, u) for p in params} for u in (0.0, 1.0)], label)
+    _check_window(study, cfg, label)
     study.out.mkdir(parents=True, exist_ok=True)
     trials_dir = study.out / "trials"
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -513,7 +605,8 @@ def write_preset(path: Path, study, best: dict, loss: float, cfg: dict, wall: fl
     preset, values = scene_soil_values(soil)  # the values as the trial's soil was resolved from them
     radius = resolve_soil(preset, values).radius
     values.pop("radius", None)  # a resolution, not a soil property: a scene keeps its own
-    calibration = {"study": str(study.source), "scene": str(study.scene), "objective": cfg["spec"]["objective"],
+    calibration = {"study": str(study.source), "out": str(study.out), "scene": str(study.scene),
+                   "objective": cfg["spec"]["objective"],
                    "loss": float(loss), "trials": cfg["trials"], "radius_m": radius, "wall_time_s": round(wall, 1)}
     if soil.preset_file is not None:
         calibration["built_on"] = str(soil.preset_file)

@@ -13,11 +13,13 @@ Terrain (all on the run's heightmap grid, the ground-only `z` of terrain_initial
 - cut / fill: the volume below / above the initial surface, sum of max(0, -dz) dA and max(0, dz) dA;
 - max depth: the largest drop below the initial surface, and where; heave: the largest rise (the spoil beside
   the trench), where, and on which side of the trench as seen from the machine (left, right, front = beyond the
-  trench, back = between the trench and the machine);
+  trench, back = between the trench and the machine); the cells where the initial surface was a gap between grains
+  (summary.grain_gaps, with the run's grain radius) are left out of it;
 - the dig line runs from the machine's base through the centre of the run's cut (cut-weighted); profile.csv samples
   it.
-Joints (a log with `t` and joints in rad or `_deg`, a ROS bag's sensor_msgs/JointState, or the other run's
-joints.csv), on their common time span resampled at `JOINT_DT`:
+Joints (a log with `t` and joints in rad or `_deg`, its columns naming no joint of the run left unread with a
+warning; a ROS bag's sensor_msgs/JointState, or the other run's joints.csv), on their common time span resampled at
+`JOINT_DT`:
 - a log in degrees under radian names is refused: a joint with limits (boom, arm, bucket) that reaches beyond a full
   turn and far beyond the run; any rotating joint that moves faster than RATE_MARGIN x its actuator's limit (the run's
   machine description, read from the files its manifest names; a joint with a speed limit, so not a prismatic one). A
@@ -28,7 +30,8 @@ joints.csv), on their common time span resampled at `JOINT_DT`:
   for every joint, with a warning;
 - rmse_rad: RMS of run minus reference; lag_s: the shift that best aligns the two (cross-correlation of the
   mean-removed angles, positive = the run is late); rate_ratio: the 90th percentile of the run's |angular rate| over
-  the reference's (0.5 = the run moves at half the real rate).
+  the reference's (0.5 = the run moves at half the real rate), both rated over the span they share once the
+  reference is shifted by the lag: the same motion (a log longer than the run is rated over the part the run did).
 """
 from __future__ import annotations
 
@@ -40,6 +43,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..recorders import read_csv_columns, write_json
+from ..summary import grain_gaps, grain_radius
 from . import scan as scans
 
 COMPARISON_FILE = "comparison.json"
@@ -69,8 +73,34 @@ MIN_DIG_COVERAGE = 0.5     # a reference covering less of the dig area than this
 WARN_DIG_COVERAGE = 0.9    # ...less than this gets a warning (its volumes miss part of the dig)
 FIT_WARN_RESIDUAL_M = 0.05  # a fitted placement with a larger residual (good fits: ~0.02 m on DEM grain)...
 FIT_WARN_INLIERS = 0.5      # ...or fewer inliers than this (good fits: ~0.75) probably went wrong
+# the top-level keys comparison.json can hold (a study's compare.<key> metric is checked against them before any run;
+# test_studies_compare checks them against what compare writes)
+SURFACE_KEYS = ("cut_volume_m3", "fill_volume_m3", "max_depth_m", "max_depth_xy_m", "cut_centre_xy_m",  # of
+                "heave_height_m", "heave_xy_m", "heave_side", "heave_offset_m")  # surface_metrics: run, reference
+TERRAIN_KEYS = ("cell_m", "change_threshold_m", "margin_m", "dig_area_m2", "dig_line", *SURFACE_KEYS)  # any run
+REFERENCE_TERRAIN_KEYS = ("compared_area_m2", *(f"reference_{k}" for k in SURFACE_KEYS), "terrain_rmse_m",
+                          "terrain_bias_m", "terrain_max_abs_error_m", "reference_empty_cells",
+                          "reference_coverage_of_dig_area", "cut_volume_relative_error", "fill_volume_relative_error",
+                          "max_depth_relative_error", "heave_height_relative_error", "max_depth_position_error_m")
+JOINT_KEYS = ("joints", "joints_common_span_s", "joints_rmse_rad", "joints_lag_s", "joints_rate_ratio")
 OUTPUT_FILES = (COMPARISON_FILE, PROFILE_FILE, "comparison_terrain.png", "comparison_profile.png",
                 "comparison_joints.png")  # all a compare writes: replaced together, never left from an earlier one
+
+
+def comparison_keys(reference: dict) -> list[str]:
+    """The top-level keys comparison.json can hold for a study's `reference` (its keys terrain, terrain_before,
+    joints, against): a run's own terrain block always (a run with soil), the reference's and the joints' blocks
+    when the reference has them."""
+    keys = ["run", "warnings", *TERRAIN_KEYS]
+    if "terrain" in reference or "against" in reference:
+        keys += REFERENCE_TERRAIN_KEYS
+    if "terrain" in reference:
+        keys += ["terrain_scan", "transform"] + (["terrain_scan_before"] if "terrain_before" in reference else [])
+    if "against" in reference:
+        keys.append("against")
+    if "joints" in reference or "against" in reference:
+        keys += [*JOINT_KEYS, *(["joint_log"] if "joints" in reference else [])]
+    return keys
 
 
 # ----------------------------------------------------------------------------------------------- run folders
@@ -91,12 +121,17 @@ def run_folder(path, key: str) -> Path:
     return path
 
 
+def _manifest(run_dir: Path) -> dict:
+    try:
+        data = json.loads((run_dir / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
 def machine_pose(run_dir: Path) -> tuple[np.ndarray | None, float]:
     """(base xy, yaw) of the run's (first) machine from its manifest; (None, 0) without a machine."""
-    try:
-        scene = json.loads((run_dir / "manifest.json").read_text()).get("scene", {})
-    except (OSError, ValueError):
-        return None, 0.0
+    scene = _manifest(run_dir).get("scene") or {}
     machine = scene.get("machine") or (scene.get("machines") or [None])[0]
     if not machine:
         return None, 0.0
@@ -119,8 +154,9 @@ def dig_area(changes, threshold: float, margin_cells: int) -> np.ndarray:
     return mask
 
 
-def surface_metrics(z0, z1, x, y, mask, base_xy, yaw) -> dict:
-    """Cut, fill, max depth and heave of z1 against z0 over the mask (NaN cells skipped)."""
+def surface_metrics(z0, z1, x, y, mask, base_xy, yaw, gaps=None) -> dict:
+    """Cut, fill, max depth and heave of z1 against z0 over the mask (NaN cells skipped); the heave leaves out `gaps`
+    (summary.grain_gaps of z0: cells where the bed floor showed through between grains, one of which rolled in)."""
     cell = abs((x[1] - x[0]) * (y[1] - y[0])) if len(x) > 1 and len(y) > 1 else 0.0
     dz = np.where(mask, z1 - z0, np.nan)
     valid = np.isfinite(dz)
@@ -138,9 +174,10 @@ def surface_metrics(z0, z1, x, y, mask, base_xy, yaw) -> dict:
         out.update(max_depth_m=float(-filled[i]), max_depth_xy_m=[float(gx[i]), float(gy[i])])
         cut = np.maximum(0.0, -filled)
         out["cut_centre_xy_m"] = [float(np.sum(cut * gx) / cut.sum()), float(np.sum(cut * gy) / cut.sum())]
-    k = np.unravel_index(int(np.argmax(filled)), dz.shape)
-    if filled[k] > 0:
-        out.update(heave_height_m=float(filled[k]), heave_xy_m=[float(gx[k]), float(gy[k])])
+    risen = filled if gaps is None else np.where(gaps, 0.0, filled)
+    k = np.unravel_index(int(np.argmax(risen)), dz.shape)
+    if risen[k] > 0:
+        out.update(heave_height_m=float(risen[k]), heave_xy_m=[float(gx[k]), float(gy[k])])
         cut = np.maximum(0.0, -filled)
         if cut.sum() > 0:  # side of the heave from the trench's centre, in the machine's frame
             centre = np.array([np.sum(cut * gx), np.sum(cut * gy)]) / cut.sum()
@@ -281,11 +318,12 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
                 _warn(warnings, f"{key}: {label} covers only {100 * coverage:.0f}% of the dig area ({where}): "
                                 f"volumes and depths are compared over the covered part only")
         out["compared_area_m2"] = float(compared.sum() * cell)
-    run = surface_metrics(z0, z1, x, y, compared, base_xy, yaw)
+    radius = grain_radius(None, _manifest(run_dir))
+    run = surface_metrics(z0, z1, x, y, compared, base_xy, yaw, grain_gaps(z0, abs(x[1] - x[0]), radius))
     out.update(run)
     arrays = dict(x=x, y=y, z0=z0, z1=z1, mask=mask, ref0=ref0, ref1=ref1, label=label)
     if ref1 is not None:
-        ref = surface_metrics(ref0, ref1, x, y, compared, base_xy, yaw)
+        ref = surface_metrics(ref0, ref1, x, y, compared, base_xy, yaw, grain_gaps(ref0, abs(x[1] - x[0]), radius))
         out.update({f"reference_{k}": v for k, v in ref.items()})
         both = mask & np.isfinite(ref1) & np.isfinite(z1)
         err = (z1 - ref1)[both]
@@ -322,9 +360,11 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
 
 
 # ----------------------------------------------------------------------------------------------- joints
-def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def read_joint_log(path, key: str = "--joints", joints=None,
+                   warnings: list | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(t, {joint: rad}) of a joint log: a CSV (`t` plus `<joint>` rad or `<joint>_deg`; a run's joints.csv too) or
-    a ROS bag (ROS 1 .bag, ROS 2 folder or .mcap/.db3) with sensor_msgs/JointState messages."""
+    a ROS bag (ROS 1 .bag, ROS 2 folder or .mcap/.db3) with sensor_msgs/JointState messages. `joints`: the run's
+    joint names; a CSV's columns that name none of them (a `mode` column of text) are not read, with a warning."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{key}: {path}: file not found")
@@ -333,7 +373,15 @@ def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, n
     from ..scene import CsvProblem, read_motion_csv
 
     try:
-        times, angles = read_motion_csv(path)
+        kept = _joint_columns_only(path, key, joints, warnings)
+        if kept is None:
+            times, angles = read_motion_csv(path)
+        else:
+            import tempfile
+
+            with tempfile.TemporaryDirectory() as tmp:
+                (Path(tmp) / path.name).write_text(kept, encoding="utf-8")
+                times, angles = read_motion_csv(Path(tmp) / path.name)
     except CsvProblem as exc:
         raise UserError(f"{key}: {path}: {exc}") from None
     except OSError as exc:
@@ -344,6 +392,64 @@ def read_joint_log(path, key: str = "--joints") -> tuple[np.ndarray, dict[str, n
     if t[0] > CLOCK_TIME_S:  # clock time: compared from its first sample, as a bag's times are
         t = t - t[0]
     return t, {j: np.asarray(v, float) for j, v in angles.items()}
+
+
+def _joint_columns_only(path: Path, key: str, joints, warnings: list | None) -> str | None:
+    """The CSV's text with t and the columns of the run's `joints` only (scene.read_motion_csv reads every column:
+    a log's `mode` column of text was refused), and a warning naming the others; None to read the file as it is
+    (nothing to leave out, no joints known, or a problem read_motion_csv names: size, encoding, no t)."""
+    import csv
+    import io
+
+    from ..scene import MAX_CSV_BYTES
+
+    if joints is None or path.stat().st_size > MAX_CSV_BYTES:
+        return None
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+    header = [c.strip() for c in rows[0]] if rows else []
+    if "t" not in header:
+        return None
+    recorded = any(n.endswith(".q") for n in header)  # a run's joints.csv: its other <joint>.* columns go unread
+    names = {}
+    for i, n in enumerate(header):
+        if n == "t" or (recorded and "." in n and not n.endswith(".q")):
+            continue
+        base = n[:-2] if recorded and n.endswith(".q") else n
+        names[i] = base[:-4] if base.endswith("_deg") else base
+    ignored = [header[i] for i, j in names.items() if j not in joints]
+    if not ignored:
+        return None
+    if len(ignored) == len(names):
+        raise UserError(f"{key}: {path} names no joint of the run (run: {', '.join(joints)}; log: "
+                        f"{', '.join(header[i] for i in names)})")
+    _warn(warnings if warnings is not None else [],
+          f"{key}: {path.name}: column{'s' * (len(ignored) > 1)} {', '.join(ignored)} name{'s' * (len(ignored) == 1)} "
+          f"no joint of the run ({', '.join(joints)}): not read")
+    keep = [i for i, n in enumerate(header) if n not in ignored]
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    for line, row in enumerate(rows, start=1):
+        if len(row) != len(header):  # as read_motion_csv counts and says it, for the whole row
+            raise UserError(f"{key}: {path}: line {line}: expected {len(header)} fields, got {len(row)}")
+        writer.writerow([row[i] for i in keep])
+    return out.getvalue()
+
+
+def run_joint_names(run_dir: Path) -> list[str] | None:
+    """The joints of a run's joints.csv (its `<joint>.q` columns), from its header; None without one."""
+    import csv
+
+    try:
+        with open(run_dir / "joints.csv", newline="", encoding="utf-8") as fh:
+            header = next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError):
+        return None
+    names = [n[:-2] for n in header if n.endswith(".q")]
+    return names or None
 
 
 def _read_bag(path: Path, key: str):
@@ -536,10 +642,23 @@ def best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> int:
     return lag
 
 
+def aligned_rates(t_run, q_run, t_ref, q_ref, lag_s: float, n_smooth: int):
+    """(run's |rate|, reference's |rate|) resampled at JOINT_DT over the span both cover once the reference is
+    shifted by lag_s (its t + lag_s: a lag > 0, a late run, moves the reference later); None when that span is too
+    short to rate."""
+    t0, t1 = max(t_run[0], t_ref[0] + lag_s), min(t_run[-1], t_ref[-1] + lag_s)
+    t = np.arange(t0, t1 + 1e-12, JOINT_DT)
+    if len(t) <= 2 * n_smooth:
+        return None
+    a, b = np.interp(t, t_run, q_run), np.interp(t, np.asarray(t_ref) + lag_s, q_ref)
+    return _rate(a, n_smooth), _rate(b, n_smooth)
+
+
 def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
                      warnings: list | None = None, specs: dict | None = None,
                      check: bool = True) -> tuple[dict, dict]:
-    """Per-joint rmse, lag and rate ratio on the common time span; the arrays for the figure. A log in other units
+    """Per-joint rmse and lag on the common time span, rate ratio on the span shared once aligned by the lag (the
+    common one for a joint without a lag); the arrays for the figure. A log in other units
     than the run's (degrees under radian names) is refused (check_units; `specs`: the run's machine_joints, None
     when unknown; check=False for another run's joints.csv, radians by the run folder's contract); one whose time
     looks like milliseconds is warned of."""
@@ -576,6 +695,12 @@ def joint_comparison(t_run, run: dict, t_ref, ref: dict, ref_label: str,
         moving = float(np.percentile(b, 95) - np.percentile(b, 5)) > STILL_RANGE
         lag = best_lag(a, b, max_lag) if moving else None
         ra, rb = _rate(a, n_smooth), _rate(b, n_smooth)
+        if lag:
+            # the rates of the same motion: the reference shifted by the lag, over the span both cover then (on the
+            # common span before the shift, a lag cut part of a fast phase out of one of them: 0.22 for 1)
+            turns = spec is not None and spec.turns
+            ra, rb = aligned_rates(t_run, run[j], t_ref, unwrap_swing(ref[j]) if turns else ref[j],
+                                   lag * JOINT_DT, n_smooth) or (ra, rb)
         pa, pb = float(np.percentile(ra, 90)), float(np.percentile(rb, 90))
         per[j] = {"rmse_rad": float(np.sqrt(np.mean((a - b) ** 2))), "rmse_deg": math.degrees(
             float(np.sqrt(np.mean((a - b) ** 2)))), "lag_s": None if lag is None else lag * JOINT_DT,
@@ -672,7 +797,7 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
             raise UserError(f"RUN_DIR: {run_dir} has no terrain_final.npz to compare the scan with")
     if joints is not None or (against is not None and (run_dir / "joints.csv").is_file()):
         if joints is not None:  # the user's file first: its problems are the ones to hear about
-            t_ref, q_ref = read_joint_log(joints)
+            t_ref, q_ref = read_joint_log(joints, joints=run_joint_names(run_dir), warnings=warnings)
             ref_label = Path(joints).name
             result["joint_log"] = str(Path(joints).resolve())
         else:

@@ -129,8 +129,10 @@ def plot_study(rows: list[dict], parameters: list[str], metrics: list[str], png_
             ax.plot(px[ok], my[ok], "o", color="tab:blue", ms=5)
             failed = ~done & np.isfinite(px)
             if failed.any():
-                ax.plot(px[failed], np.full(failed.sum(), np.nanmin(my[ok]) if ok.any() else 0.0), "x",
-                        color="tab:red", ms=7, label="failed")
+                # on the x axis (axes fraction 0), not at a metric value: drawn at the lowest finished point it read
+                # as a measurement; this transform leaves the y limits to the finished points
+                ax.plot(px[failed], np.zeros(failed.sum()), "x", color="tab:red", ms=7, label="failed",
+                        transform=ax.get_xaxis_transform(), clip_on=False)
                 ax.legend(fontsize=7)
             if labels is not None:
                 ax.set_xticks(range(len(labels)), labels, fontsize=8, rotation=30 if len(labels) > 4 else 0)

@@ -31,7 +31,8 @@ makes its row failed too, but keeps the simulation.
 
 Refused before any run (one line naming the key, exit 2): every point's values (and, for random / lhs, each
 parameter's low and high) that its scene would refuse, a bad reference (transform, fit_transform, a key that needs
-terrain), a CSV metric naming a file, tool or column its runs do not write, and a time window t: [t0, t1] without
+terrain), a CSV metric naming a file, tool or column its runs do not write, a compare.<key> metric naming a key
+comparison.json cannot hold with the reference (compare.comparison_keys), and a time window t: [t0, t1] without
 t0 < t1.
 
 Metrics (columns of the table):
@@ -290,6 +291,9 @@ def load_study(path, out=None) -> Study:
     check_reference(reference, label)
     if any(isinstance(m, str) and m.startswith("compare.") for m in metrics) and not reference:
         raise UserError(f"{label}: metrics: compare.* metrics need a `reference` (terrain, joints or against)")
+    for i, m in enumerate(metrics):
+        if isinstance(m, str) and m.startswith("compare."):
+            check_compare_metric(m, reference, f"{label}: metrics.{i}")
     name = data.get("name") or path.stem
     out_dir = Path(out) if out is not None else Path(data["out"]) if data.get("out") else Path("studies") / name
     study = Study(path.resolve(), str(name), scene, fixed, params, sampling, samples, seed, metrics, reference,
@@ -327,17 +331,16 @@ def check_reference(reference: dict, label: str) -> None:
     if ("transform" in reference or fit is not None or "terrain_before" in reference) and "terrain" not in reference:
         raise UserError(f"{label}: reference: transform, fit_transform and terrain_before place a scan of the terrain; "
                         f"give reference.terrain (the scan after the dig)")
-    # the files themselves: an empty scan or a joint log without its columns is refused now, not after every run
-    from .compare import read_joint_log
+    # the files themselves: an empty scan is refused now, not after every run (a joint log: check_points, which
+    # knows the machine's joints, the only columns of it that are read)
     from .scan import read_scan
 
-    readers = [(k, read_scan) for k in ("terrain", "terrain_before") if k in reference]
-    readers += [("joints", read_joint_log)] if "joints" in reference else []
-    for key, read in readers:
-        try:
-            read(reference[key], key=f"reference.{key}")
-        except UserError as exc:
-            raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
+    for key in ("terrain", "terrain_before"):
+        if key in reference:
+            try:
+                read_scan(reference[key], key=f"reference.{key}")
+            except UserError as exc:
+                raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
     if "against" in reference:
         if any(k in reference for k in ("terrain", "terrain_before", "joints")):
             raise UserError(f"{label}: reference.against: compares with another run; give it without terrain, "
@@ -345,6 +348,20 @@ def check_reference(reference: dict, label: str) -> None:
         if not (Path(reference["against"]) / "manifest.json").is_file():
             raise UserError(f"{label}: reference.against: {reference['against']} is not a run folder (no "
                             f"manifest.json)")
+
+
+def check_compare_metric(name: str, reference: dict, where: str) -> None:
+    """A compare.<key> metric names a key comparison.json can hold with this reference (a misspelt one was an empty
+    column, and a calibration on it simulated every trial before failing each); its sub-keys (a joint's name) are
+    checked when the first run is measured."""
+    from .compare import comparison_keys
+
+    keys = comparison_keys(reference)
+    top = name.split(".")[1]
+    if top not in keys:
+        kinds = ", ".join(k for k in reference if k in ("terrain", "terrain_before", "joints", "against"))
+        raise UserError(f"{where}: {name}: comparison.json has no {top!r} with reference {kinds}; its keys: "
+                        f"{', '.join(keys)}")
 
 
 def expand_points(study: Study, label: str) -> list[dict]:
@@ -424,7 +441,16 @@ def check_points(study: Study, points: list[dict], label: str, names: list[str] 
             name = names[i] if names else "parameters: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in point.items())
             raise UserError(f"{label}: {name}: {' '.join(str(exc).split())}") from None
         if model is not None:
-            check_metric_columns(study.metrics, csv_columns(model), [b.name for b in model.bindings], label)
+            columns = csv_columns(model)
+            check_metric_columns(study.metrics, columns, [b.name for b in model.bindings], label)
+            if "joints" in study.reference:  # the log, read as compare reads it against these runs' joints
+                from .compare import read_joint_log
+
+                names = [c[:-2] for c in columns.get("joints.csv", ()) if c.endswith(".q")]
+                try:
+                    read_joint_log(study.reference["joints"], "reference.joints", names or None)
+                except UserError as exc:
+                    raise UserError(f"{label}: {' '.join(str(exc).split())}") from None
 
 
 def bound_points(study: Study) -> tuple[list[dict], list[str]]:
@@ -509,6 +535,22 @@ def _dig(data, keys: list[str]):
     return data
 
 
+def _dig_comparison(data: dict, keys: list[str], allowed: list[str]):
+    """comparison.json's value at keys: None where the comparison leaves out a key it can hold (`allowed`: no depth
+    to place, no warnings), a UserError naming what is there for a key it does not hold (a misspelt metric or joint
+    was an empty column)."""
+    for depth, k in enumerate(keys):
+        if isinstance(data, dict) and k in data:
+            data = data[k]
+        elif depth == 0 and k in allowed:
+            return None
+        else:
+            where = f"its {'.'.join(keys[:depth])}" if depth else "it"
+            has = f"holds {', '.join(map(str, data))}" if isinstance(data, dict) else f"is {data!r}"
+            raise UserError(f"comparison.json has no {'.'.join(keys)!r}: {where} {has}")
+    return data
+
+
 def _stat(values: np.ndarray, stat: str):
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
@@ -587,7 +629,9 @@ def collect_metrics(run_dir: Path, metrics: list, reference: dict, errors: dict 
                 raise UserError(f"{name} has no {rest!r}")
             return value
         if head == "compare":
-            return _dig(comparison(), rest.split("."))
+            from .compare import comparison_keys
+
+            return _dig_comparison(comparison(), rest.split("."), comparison_keys(reference))
         parts = rest.split(".")
         if head == "wrench":
             return csv_metric(run_dir, CSV_SHORT[head], ".".join(parts[1:-1]), parts[-1], {"tool": parts[0]})
