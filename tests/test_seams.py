@@ -277,3 +277,26 @@ def test_soil_in_tools_weighs_the_grains_inside_the_buckets_hull_and_no_others()
     assert min(masses) > 0.0
     assert sim.soil_in_tools()["bucket_link"] == pytest.approx(masses[0] + masses[1], rel=1e-12)
 
+
+
+def test_a_grain_in_flight_is_no_ground_in_the_terrain():
+    """The ground heightmap (terrain_*.npz's z, the summary's heaped volume, compare's heave) is the soil resting on
+    the ground: a grain falling through the air 1 m above the bed (soil spilling from a bucket at the run's last
+    instant had read as a heap 1.4 m high) is in z_all only; the same grain at rest there would be ground."""
+    from opera_taichi.observers import ground_and_all_heightmaps
+
+    sim = ot.Simulation.from_scene(BLADE, overrides={"soil.overrides.radius": 0.08, "sim.duration": 0.1})
+    soil = sim.soil
+    grid = sim.model.soil.grid
+    ix, iy = len(grid.x) // 3, len(grid.y) // 2
+    over = [float(grid.x[ix]), float(grid.y[iy]), 1.0]
+    for speed, ground in ((-3.0, False), (0.0, True)):
+        parts = soil.particles()
+        soil.set_particles(np.vstack([parts["positions"], over]),
+                           velocities=np.vstack([parts["velocities"], [0.0, 0.0, speed]]),
+                           radii=np.append(parts["radii"], soil.micro.radius))
+        z, z_all = ground_and_all_heightmaps(sim)
+        assert z_all[ix, iy] == pytest.approx(1.0 + soil.micro.radius, abs=1e-9)
+        assert (z[ix, iy] == z_all[ix, iy]) == ground
+        assert z[ix, iy] < 0.2 or ground
+        soil.set_particles(parts["positions"], velocities=parts["velocities"], radii=parts["radii"])
