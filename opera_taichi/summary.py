@@ -10,8 +10,7 @@ Definitions (also written into the summary under `definitions`):
 - soil held: the last `in_<tool>_kg` of soil_mass.csv (grain centres inside the tool's convex hull); m3 at the
   bulk density; a bucket's fill factor is that volume over its struck volume.
 - dug / heaped: the ground-only heightmaps `z` (grains a tool carries and grains in flight left out), final minus
-  initial, summed over
-  the cells: dug = sum max(0, z0 - z1) dA, heaped = sum max(0, z1 - z0) dA. The highest heap leaves out the cells
+  initial, summed over the cells: dug = sum max(0, z0 - z1) dA, heaped = sum max(0, z1 - z0) dA. The highest heap leaves out the cells
   that were gaps between grains at the start (grain_gaps): a grain rolling into one is no heap.
 - force: |F| of the soil on each tool (tool_wrench.csv); the mean is over the samples in contact (|F| > 1 N).
 - time at a limit: a joints.csv sample at the limit (|effort| >= 0.99 max_torque, |qd| >= 0.99 max_speed) counts
