@@ -374,10 +374,28 @@ def build_model(scene) -> Model:
     soil = _build_soil(scene) if scene.soil is not None else None
     warnings = tuple(w for m in machines for w in m.description.warnings)
     warnings += tuple(w for (key, _, _), m in zip(machine_entries(scene), machines) for w in _beyond_limits(key, m))
+    warnings += _stiffness_floor(scene, soil)
     return Model(name=scene.name, dt=float(scene.sim.dt), duration=float(scene.sim.duration),
                  seed=int(scene.sim.seed), machines=tuple(machines), soil=soil, tools=tools,
                  bindings=_bindings(machines, tools) if soil is not None else (), warnings=warnings,
                  fingerprint=_fingerprint(scene))
+
+
+def _stiffness_floor(scene, soil) -> tuple[str, ...]:
+    """A youngs_modulus override below the contact stiffness the bed's weight needs (soil.OVERLAP_RULE) does not set
+    the contacts: say so rather than let a calibration or a study vary it for nothing."""
+    from .soil import STIFFNESS_SCALE
+
+    asked = (scene.soil.overrides or {}).get("youngs_modulus") if scene.soil is not None else None
+    if soil is None or asked is None or not hasattr(soil.params, "k_n"):
+        return ()
+    from_e = STIFFNESS_SCALE * float(soil.bulk.youngs_modulus) * 2.0 * float(soil.bulk.radius)
+    if soil.params.k_n <= from_e * (1.0 + 1e-9):
+        return ()
+    floor = soil.params.k_n / (STIFFNESS_SCALE * 2.0 * float(soil.bulk.radius))
+    return (f"soil.overrides.youngs_modulus: {float(asked):g} Pa is below the stiffness the bed's weight needs for "
+            f"these grains (overlaps under 1% of the radius); the contacts take {floor:.3g} Pa's, so a lower value "
+            f"changes nothing",)
 
 
 def check_scene(scene) -> Model:

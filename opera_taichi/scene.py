@@ -377,7 +377,9 @@ class SoilConfig(_Model):
     settle_time: _num("s", ge=0) = Field(1.0, description="Time the bed settles under gravity before the run.")
     max_speed: _num("m/s", gt=0) = Field(30.0, description="Divergence guard: a faster particle stops the run "
                                                            "(exit 3).")
-    heightmap_cell: _num("m", gt=0) = Field(0.05, description="Cell size of the terrain heightmaps.")
+    heightmap_cell: _num("m", gt=0) = Field(0.05, description="Cell size of the terrain heightmaps, adjusted on "
+                                            "each axis to the nearest that divides the domain into whole cells "
+                                            "(the files' x and y give the cells' centres).")
     terrain: Optional[TerrainConfig] = Field(
         None, description="Fill the beds up to a scanned surface instead of level with their top (see TerrainConfig).")
     preset_file: Optional[ExistingFile] = Field(
