@@ -334,8 +334,9 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                     if d_ij.dot(d_ij) < reach_ij * reach_ij:
                         closing_i = False
                         closing_j = False
-                        if shoving:
-                            closing_i = -v_i.dot(d_ij) > approach_v * d_ij.norm()
+                        if shoving:  # (not a frozen sleeper: frozen soil lies beyond every tool's reach, and a
+                            # thaw costs a repartition of the whole bed)
+                            closing_i = j >= n_frozen and -v_i.dot(d_ij) > approach_v * d_ij.norm()
                             closing_j = v_j.dot(d_ij) > approach_v * d_ij.norm()
                         if asleep_j and (fast_i or closing_i):
                             ti.atomic_or(surf_id[j, TOOL_BITS], WAKE_BIT)
