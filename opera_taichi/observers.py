@@ -370,9 +370,10 @@ def mass_in_tools(sim, planes: list[np.ndarray]) -> list[float]:
     return [float(parts["masses"][m].sum()) for m in inside_tools(sim, planes, parts["positions"])]
 
 
-def carried_by_tools(sim, positions: np.ndarray) -> np.ndarray:
+def carried_by_tools(sim, positions: np.ndarray, reach: float = 0.0) -> np.ndarray:
     """Grains a tool carries: inside its convex hull, or heaped on it (above its lowest point, within its outline
-    seen from above). Soil under a tool, or beside it, is not carried."""
+    seen from above, or within `reach` of it: a grain resting on the rim has its centre a radius outside). Soil
+    under a tool, or beside it, is not carried."""
     from scipy.spatial import Delaunay
 
     carried = np.zeros(len(positions), bool)
@@ -380,9 +381,13 @@ def carried_by_tools(sim, positions: np.ndarray) -> np.ndarray:
         p, q, _, _ = sim.tool_pose(i)
         hull = b.mesh.convex_hull.vertices @ quat_to_matrix(q).T + p
         outline = Delaunay(hull[:, :2])
-        above = positions[:, 2] > hull[:, 2].min()
-        if np.any(above):
-            carried[np.nonzero(above)[0][outline.find_simplex(positions[above, :2]) >= 0]] = True
+        above = np.nonzero(positions[:, 2] > hull[:, 2].min())[0]
+        if len(above):
+            xy = positions[above, :2]
+            toward = hull[:, :2].mean(axis=0) - xy  # (the outline is convex: a point within reach of it, moved
+            dist = np.linalg.norm(toward, axis=1, keepdims=True)  # reach toward its middle, falls inside it)
+            xy = xy + toward * np.minimum(1.0, reach / np.maximum(dist, 1e-12))
+            carried[above[outline.find_simplex(xy) >= 0]] = True
     return carried
 
 
@@ -401,7 +406,7 @@ def ground_and_all_heightmaps(sim, planes: list[np.ndarray] | None = None) -> tu
     parts = soil.particles(("positions", "velocities", "radii"))
     away = in_flight(parts["velocities"], parts["radii"], float(sim.model.gravity))
     if sim.model.bindings:
-        away |= carried_by_tools(sim, parts["positions"])
+        away |= carried_by_tools(sim, parts["positions"], reach=float(np.max(parts["radii"], initial=0.0)))
     if not np.any(away):
         return z_all, z_all
     return soil.heightmap(grid.x, grid.y, exclude=away), z_all
