@@ -112,7 +112,9 @@ def test_an_integer_key_with_bounds_that_are_not_integers_is_refused(tmp_path, c
     ("reference: {terrain: scan.xyz, transform: '1,2'}",
      "reference.transform: expected x,y,z,yaw_deg[,roll_deg,pitch_deg] (m, degrees), got '1,2'"),
     ("reference: {terrain: scan.xyz, transform: {xyz: [1, 2]}}", "reference.transform.xyz: expected [x, y, z]"),
-    ("reference: {terrain: scan.xyz, fit_transform: yes}",
+    ("reference: {terrain: scan.xyz, fit_transform: yes}",   # (YAML 1.2: the word yes, not a boolean)
+     "reference.fit_transform: expected auto, plane or rigid (as compare --fit-transform), got 'yes'"),
+    ("reference: {terrain: scan.xyz, fit_transform: true}",
      "reference.fit_transform: expected auto, plane or rigid (as compare --fit-transform), got True"),
     ("reference: {joints: scan.xyz, fit_transform: auto}", "reference: transform, fit_transform and terrain_before "
                                                            "place a scan of the terrain; give reference.terrain"),
