@@ -601,9 +601,7 @@ def _near_a_slow_tool(x, tools: ti.template(), v_wake, v_min):
         if tools[t, T_ON] > 0.0:
             r_bs = tools[t, T_BS + 3]
             d = x - _sphere_centre(tools, t, _tool_rotation(tools, t))
-            vel = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2])
-            ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
-            speed = vel.norm() + ang.norm() * r_bs
+            speed = _tool_speed(tools, t)
             near = near or (d.dot(d) < r_bs * r_bs and v_min <= speed < v_wake)
     return near
 
