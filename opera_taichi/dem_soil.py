@@ -1225,7 +1225,10 @@ class DemSoil:
         names = WARM_KERNELS
         if self.per_particle:  # (the GPU layout's sort and reverse lists instead of the serial ones)
             names = tuple(f"{name}_parallel" if name in ("sort_by_bucket", "build_reverse") else name for name in names)
-        precompile(*(getattr(dem, name) for name in names))
+        kernels = [getattr(dem, name) for name in names]
+        if self._serial_cpu:  # (a bed that wakes past SERIAL_BELOW switches to the threaded substep mid-run)
+            kernels += [_substep_kernel("serial"), _substep_kernel("block")]
+        precompile(*kernels)
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
         for which in ("sort", "sort_keep", "lists"):
             _rebuild_steps(which, self.per_particle)  # (the rebuilds' graphs: a live one's is first needed in the run)

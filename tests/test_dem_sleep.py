@@ -2,6 +2,8 @@
 moving soil costs. It must not change what the soil does: the same mass, the same terrain and bucket force on a
 dig, and a woken region behaves like one that never slept."""
 import json
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -345,6 +347,36 @@ def test_a_tool_that_moves_past_its_clearance_asks_for_a_new_partition(freeze_an
     rows[t, dem.T_ON] = 0.0
     assert soil._partition_stale()
     rows[:] = saved
+
+
+_NO_COMPILE_IN_THE_RUN = """
+import json
+from opera_taichi import dem_soil
+from opera_taichi.kernels import dem
+dem_soil.SERIAL_BELOW = 48   # (a few blocks: this small dig switches from the serial substep to the threaded one)
+from opera_taichi.simulation import Simulation
+sim = Simulation.from_scene("scenes/blade_cut.yaml", {"soil.overrides.radius": 0.08, "soil.sleep": True})
+kernels = (dem.substep_serial, dem.substep)
+before = [len(k._primal.compiled_kernels) for k in kernels]
+layouts = {sim.soil._layout()}
+for _ in range(150):
+    sim.step()
+    layouts.add(sim.soil._layout())
+print(json.dumps(dict(layouts=sorted(layouts), before=before,
+                      after=[len(k._primal.compiled_kernels) for k in kernels])))
+"""
+
+
+def test_a_run_that_wakes_past_the_serial_threshold_compiles_nothing_on_its_clock():
+    """The setup compiles both CPU substeps: a bed that wakes past SERIAL_BELOW mid-run switched to the threaded one
+    and compiled it then (0.88 s of the site's 18 s, at 20.4 s). A process of its own: Taichi keeps what it compiled
+    for the whole process."""
+    done = subprocess.run([sys.executable, "-c", _NO_COMPILE_IN_THE_RUN], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    seen = json.loads(done.stdout.strip().splitlines()[-1])
+    assert seen["layouts"] == ["block", "serial"]
+    assert seen["before"] == [1, 1] and seen["after"] == seen["before"]
 
 
 def test_serial_and_threaded_loops_give_the_same_bits(monkeypatch):
