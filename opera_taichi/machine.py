@@ -84,6 +84,10 @@ class BulletMachine:
         self._lower = np.array([desc.joint_limits[n][0] for n in self.joint_names])
         self._upper = np.array([desc.joint_limits[n][1] for n in self.joint_names])
         self._column = {n: i for i, n in enumerate(self.joint_names)}
+        # every movable joint of the URDF, actuated first: robot_state_publisher places a link only when joint_states
+        # names its joint (OPERA's bucket_end_joint, welded here); the added track wheels are not the URDF's
+        self.urdf_joint_names = self.joint_names + [n for n in desc.movable_joints if n not in self._column]
+        self._urdf_other_indices = [joint_index[n] for n in self.urdf_joint_names[len(self.joint_names):]]
 
         for name_, index in zip(self.joint_names, self._indices):
             pb.resetJointState(self.body, index, float(initial_q.get(name_, 0.0)), 0.0, physicsClientId=c)
@@ -324,6 +328,16 @@ class BulletMachine:
         """Joint positions (rad), speeds (rad/s) and motor efforts (N m) after the last step, in joint_names
         order."""
         return self._q.copy(), self._qd.copy(), self._effort.copy()
+
+    def urdf_joint_states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """joint_states() followed by the URDF's other movable joints as PyBullet has them (a welded one rests at
+        0), in urdf_joint_names order: what a ROS joint_states message carries."""
+        q, qd, effort = self.joint_states()
+        if not self._urdf_other_indices:
+            return q, qd, effort
+        rest = pb.getJointStates(self.body, self._urdf_other_indices, physicsClientId=self.client)
+        return (np.concatenate([q, [s[0] for s in rest]]), np.concatenate([qd, [s[1] for s in rest]]),
+                np.concatenate([effort, [s[3] for s in rest]]))
 
     @property
     def max_speed(self) -> np.ndarray:

@@ -58,6 +58,7 @@ class MachineDescription:
     warnings: list[str] = field(default_factory=list)
     struck_volume: dict[str, float] = field(default_factory=dict)   # m3 per soil link (a bucket's rated capacity)
     command_latency: float = 0.0    # s, dead time before the machine acts on a command from a ROS bridge
+    movable_joints: list[str] = field(default_factory=list)   # every revolute/continuous/prismatic joint, URDF order
 
 
 # ----------------------------------------------------------------------------------------- entry point
@@ -112,7 +113,8 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
         actuated_joints=list(actuators), actuators=actuators, joint_limits=limits, tip_link=tip_link,
         soil_links=soil_links, collision_meshes=collision_meshes, tracks=tracks, warnings=warnings,
         struck_volume=_struck_volume(cfg, where, soil_links),
-        command_latency=_latency(cfg.get("command_latency", 0.0), f"{where}: command_latency"))
+        command_latency=_latency(cfg.get("command_latency", 0.0), f"{where}: command_latency"),
+        movable_joints=_movable(joints))
 
 
 @dataclass

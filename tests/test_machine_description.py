@@ -121,6 +121,7 @@ def test_opera_urdf_loads_unchanged_with_real_masses():
     assert "placeholder masses (0.03, 10 kg)" in text and "replaced from machine.yaml" in text
     assert "built-in machine 'zx120'" in text                      # config found by the robot's name
     assert desc.actuated_joints == ["swing_joint", "boom_joint", "arm_joint", "bucket_joint"]
+    assert desc.movable_joints == [*desc.actuated_joints, "bucket_end_joint"]   # what joint_states carries
     inertials = _inertials(desc)
     for link, mass in MASSES.items():
         assert inertials[link].mass == pytest.approx(mass)

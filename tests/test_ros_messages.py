@@ -277,8 +277,13 @@ def test_every_published_type_round_trips_and_cdr_matches_an_independent_encoder
             assert serialize_dynamic(topic.type, text)[topic.type](decoded) == raw, name
     js = snap["/zx120/joint_states"][1]
     msg = builder.build(snap["/zx120/joint_states"][0], js)
-    assert list(msg.name) == coarse_sim.machine.joint_names
-    np.testing.assert_array_equal(msg.position, coarse_sim.machine.joint_states()[0])
+    # every movable joint of the URDF, actuated first: robot_state_publisher needs bucket_end_joint to place
+    # bucket_end_link; the welded dummy rests at 0
+    assert list(msg.name) == [*coarse_sim.machine.joint_names, "bucket_end_joint"]
+    assert len(msg.position) == len(msg.velocity) == len(msg.effort) == len(msg.name)
+    np.testing.assert_array_equal(msg.position[:4], coarse_sim.machine.joint_states()[0])
+    np.testing.assert_array_equal(msg.velocity[:4], coarse_sim.machine.joint_states()[1])
+    assert msg.position[4] == 0.0 and msg.velocity[4] == 0.0
     cloud = builder.build(*snap["/terrain/points"])
     grid = coarse_sim.model.soil.grid
     pts = np.frombuffer(cloud.data.tobytes(), "<f4").reshape(cloud.height, cloud.width, 3)

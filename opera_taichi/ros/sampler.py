@@ -73,8 +73,8 @@ class Sampler:
             return {"t": t, "transforms": transforms}
         m = sim.machines[topic.machine]
         if kind == "sensor_msgs/msg/JointState":
-            q, qd, effort = m.joint_states()
-            return {"t": t, "names": list(m.joint_names), "q": q, "qd": qd, "effort": effort}
+            q, qd, effort = m.urdf_joint_states()
+            return {"t": t, "names": list(m.urdf_joint_names), "q": q, "qd": qd, "effort": effort}
         if kind in ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"):
             return self._base(sim, topic.machine, cache)
         if kind == "geometry_msgs/msg/WrenchStamped":
