@@ -225,6 +225,33 @@ def test_study_png_draws_failed_points_on_the_x_axis_not_on_the_data(tmp_path, m
     assert lo < 5.0 < hi
 
 
+def test_study_png_colours_each_parameters_points_by_the_other(tmp_path, monkeypatch):
+    """With two parameters, a grid's points at one value of the first differ in the second: each column's points are
+    coloured by the other parameter, on a colour bar named after it (they were all one blue, the second parameter's
+    values nowhere in the first one's column); a parameter of categories gets one colour per category."""
+    from opera_taichi.studies import figures
+
+    figs = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: figs.append(fig))
+    rows = [{"soil.preset": s, "p": p, "m": i * 1.0, "status": "done"}
+            for i, (s, p) in enumerate([("dirt", 0.1), ("dirt", 0.2), ("sand", 0.1), ("sand", 0.2)])]
+    figures.plot_study(rows, ["soil.preset", "p"], ["m"], tmp_path / "study.png")
+    fig = figs[0]
+    fig.canvas.draw()
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    panels = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    assert [ax.get_ylabel() for ax in bars] == ["colour: p", "colour: soil.preset"]
+    by_preset, by_p = (ax.collections[0] for ax in panels)
+    assert list(by_preset.get_offsets()[:, 0]) == [0, 0, 1, 1] and list(by_preset.get_array()) == [0.1, 0.2, 0.1, 0.2]
+    assert list(by_p.get_offsets()[:, 0]) == [0.1, 0.2, 0.1, 0.2] and list(by_p.get_array()) == [0, 0, 1, 1]
+    for points in (by_preset, by_p):   # the two points at one x are told apart, and a colour means one value
+        colours = [tuple(c) for c in points.get_facecolors()]
+        values = list(points.get_array())
+        for i, j in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]:
+            assert (colours[i] == colours[j]) == (values[i] == values[j])
+    assert [t.get_text() for t in bars[1].get_yticklabels()] == ["dirt", "sand"]
+
+
 def test_study_png_title_is_clear_of_the_panels(tmp_path, monkeypatch):
     from opera_taichi.studies import figures
 

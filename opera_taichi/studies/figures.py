@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")  # headless
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.colors import TwoSlopeNorm  # noqa: E402
+from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize, TwoSlopeNorm  # noqa: E402
 
 from ..plots import _save, _side_axis  # noqa: E402
 
@@ -115,18 +115,29 @@ def plot_joint_comparison(arrays: dict, png_path: Path) -> None:
 
 def plot_study(rows: list[dict], parameters: list[str], metrics: list[str], png_path: Path) -> None:
     """Each metric (rows) against each parameter (columns); failed points marked on the axis in red. A parameter
-    whose values are not all numbers (a preset name, a flag, a vector) is plotted as categories, in study order."""
+    whose values are not all numbers (a preset name, a flag, a vector) is plotted as categories, in study order. With
+    several parameters, a column's points are coloured by the next parameter (the first's column by the second), its
+    scale beside the column."""
     nr, nc = max(1, len(metrics)), max(1, len(parameters))
     # constrained layout keeps the title clear of the panels (tight_layout ignores a suptitle)
-    fig, axes = plt.subplots(nr, nc, figsize=(3.6 * nc + 0.8, 2.8 * nr + 0.6), squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(nr, nc, figsize=(3.6 * nc + 0.8 + 1.0 * (len(parameters) > 1), 2.8 * nr + 0.6),
+                             squeeze=False, layout="constrained")
     done = np.array([row.get("status") == "done" for row in rows], bool)
+    columns = [_axis_values([row.get(p) for row in rows]) for p in parameters]
     for c, p in enumerate(parameters):
-        px, labels = _axis_values([row.get(p) for row in rows])
+        px, labels = columns[c]
+        # points at one x differ in the other parameters: without a colour, the second one's values were nowhere in
+        # the first one's column (a grid's points at one x were indistinguishable)
+        other = parameters[(c + 1) % nc] if len(parameters) > 1 else None
+        shade = _colour_scale(*columns[(c + 1) % nc]) if other else None
         for r, m in enumerate(metrics):
             ax = axes[r, c]
             my = np.array([_num(row.get(m)) for row in rows])
             ok = done & np.isfinite(px) & np.isfinite(my)
-            ax.plot(px[ok], my[ok], "o", color="tab:blue", ms=5)
+            if shade is None:
+                ax.plot(px[ok], my[ok], "o", color="tab:blue", ms=5)
+            else:
+                ax.scatter(px[ok], my[ok], c=shade[0][ok], cmap=shade[1], norm=shade[2], s=25, zorder=2)
             failed = ~done & np.isfinite(px)
             if failed.any():
                 # on the x axis (axes fraction 0), not at a metric value: drawn at the lowest finished point it read
@@ -142,8 +153,28 @@ def plot_study(rows: list[dict], parameters: list[str], metrics: list[str], png_
                 ax.set_xlabel(p, fontsize=8)
             if c == 0:
                 ax.set_ylabel(m, fontsize=8)
+        if shade is not None:
+            bar = fig.colorbar(matplotlib.cm.ScalarMappable(norm=shade[2], cmap=shade[1]), ax=axes[:, c],
+                               shrink=0.9, aspect=30)
+            bar.set_label(f"colour: {other}", fontsize=8)
+            if shade[3] is not None:
+                bar.set_ticks(range(len(shade[3])), labels=shade[3], fontsize=7)
     fig.suptitle(f"{len(rows)} points, {int(done.sum())} done", fontsize=10)
     _save(fig, png_path)
+
+
+def _colour_scale(values: np.ndarray, labels: list[str] | None):
+    """(values, colormap, norm, tick labels or None) to colour points by a parameter: a continuous scale for numbers,
+    one colour per category otherwise; a point without a value is grey."""
+    if labels is not None:
+        n = len(labels)
+        # tab10's first n colours (resampling it would spread them over all ten)
+        cmap = ListedColormap(matplotlib.colormaps["tab10"].colors[:n]) if n <= 10 else \
+            matplotlib.colormaps["viridis"].resampled(n)
+        return values, cmap.with_extremes(bad="0.5"), BoundaryNorm(np.arange(n + 1) - 0.5, n), labels
+    finite = values[np.isfinite(values)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    return values, matplotlib.colormaps["viridis"].with_extremes(bad="0.5"), Normalize(lo, hi), None
 
 
 def _axis_values(values: list) -> tuple[np.ndarray, list[str] | None]:
