@@ -327,6 +327,11 @@ def test_a_joint_log_with_columns_that_name_no_joint_compares_on_the_joints(tmp_
     (tmp_path / "log.csv").write_text("\n".join(text) + "\n")
     code, err = _cli([run, "--joints", tmp_path / "log.csv", "--out", tmp_path / "c2"], capsys)
     assert code == 2 and "log.csv: line 4, column boom_joint: expected a number, got 'oops'" in err, err
+    # and a cell over the csv module's field limit, in one line (it raised csv.Error: a traceback and exit 1)
+    text[3] = text[3].replace(",dig,oops,", "," + "x" * 200_000 + ",", 1)
+    (tmp_path / "log.csv").write_text("\n".join(text) + "\n")
+    code, err = _cli([run, "--joints", tmp_path / "log.csv", "--out", tmp_path / "c3"], capsys)
+    assert code == 2 and "log.csv: line 4: not readable as CSV (field larger than field limit" in err, err
 
 
 def test_a_grain_rolling_into_a_gap_of_the_initial_bed_is_no_heave(tmp_path):

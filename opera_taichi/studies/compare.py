@@ -409,7 +409,10 @@ def _joint_columns_only(path: Path, key: str, joints, warnings: list | None) -> 
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError:
         return None
-    rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+    try:
+        rows = [row for row in csv.reader(text.splitlines()) if row and any(c.strip() for c in row)]
+    except csv.Error:  # (a cell over csv's field limit, a stray quote: read_motion_csv names it)
+        return None
     header = [c.strip() for c in rows[0]] if rows else []
     if "t" not in header:
         return None
