@@ -374,21 +374,32 @@ def carried_by_tools(sim, positions: np.ndarray, reach: float = 0.0) -> np.ndarr
     """Grains a tool carries: inside its convex hull, or heaped on it (above its lowest point, within its outline
     seen from above, or within `reach` of it: a grain resting on the rim has its centre a radius outside). Soil
     under a tool, or beside it, is not carried."""
-    from scipy.spatial import Delaunay
+    from scipy.spatial import ConvexHull
 
     carried = np.zeros(len(positions), bool)
     for i, b in enumerate(sim.model.bindings):
         p, q, _, _ = sim.tool_pose(i)
         hull = b.mesh.convex_hull.vertices @ quat_to_matrix(q).T + p
-        outline = Delaunay(hull[:, :2])
         above = np.nonzero(positions[:, 2] > hull[:, 2].min())[0]
         if len(above):
-            xy = positions[above, :2]
-            toward = hull[:, :2].mean(axis=0) - xy  # (the outline is convex: a point within reach of it, moved
-            dist = np.linalg.norm(toward, axis=1, keepdims=True)  # reach toward its middle, falls inside it)
-            xy = xy + toward * np.minimum(1.0, reach / np.maximum(dist, 1e-12))
-            carried[above[outline.find_simplex(xy) >= 0]] = True
+            outline = ConvexHull(hull[:, :2])
+            carried[above[_within_polygon(positions[above, :2], outline, reach)]] = True
     return carried
+
+
+def _within_polygon(xy: np.ndarray, outline, reach: float) -> np.ndarray:
+    """Which points lie inside a convex outline (scipy ConvexHull in 2-D) or within `reach` of its edges."""
+    inside = np.all(xy @ outline.equations[:, :2].T + outline.equations[:, 2] <= 0.0, axis=1)
+    if reach > 0.0:
+        corners = outline.points[outline.vertices]           # (counter-clockwise)
+        near = np.nonzero(~inside & np.all((xy >= corners.min(axis=0) - reach) & (xy <= corners.max(axis=0) + reach),
+                                           axis=1))[0]        # (only these can be within reach: a big bed's others)
+        a, edge = corners, np.roll(corners, -1, axis=0) - corners
+        rel = xy[near, None, :] - a[None, :, :]               # each point against each edge's start
+        s = np.clip(np.einsum("ped,ed->pe", rel, edge) / np.einsum("ed,ed->e", edge, edge), 0.0, 1.0)
+        gap = np.linalg.norm(rel - s[..., None] * edge[None, :, :], axis=2).min(axis=1)
+        inside[near[gap <= reach]] = True
+    return inside
 
 
 def in_flight(velocities: np.ndarray, radii: np.ndarray, gravity: float = 9.81) -> np.ndarray:

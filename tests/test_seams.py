@@ -305,7 +305,9 @@ def test_a_grain_in_flight_is_no_ground_in_the_terrain():
 def test_a_grain_resting_on_a_tools_rim_is_carried_not_ground():
     """A grain on the rim of a tool has its centre up to a radius outside the tool's outline seen from above: it
     rides with the tool (one such grain on the main job's bucket read as a spike of ground 1.45 m high). Within a
-    grain's reach of the outline it is carried; two radii out, beside the tool, it is not."""
+    grain's reach of the outline it is carried, along the whole rim (the test moved each grain toward the
+    outline's middle, which beside a long edge runs along it: only grains near the middle counted); two radii out,
+    beside the tool, it is not."""
     from opera_taichi.observers import carried_by_tools
     from opera_taichi.geometry import quat_to_matrix
 
@@ -314,6 +316,10 @@ def test_a_grain_resting_on_a_tools_rim_is_carried_not_ground():
     hull = sim.model.bindings[0].mesh.convex_hull.vertices @ quat_to_matrix(q).T + p
     r = sim.soil.micro.radius
     edge_x, top = hull[:, 0].max(), hull[:, 2].max()
-    points = np.array([[edge_x + 0.5 * r, p[1], top + r], [edge_x + 2.0 * r, p[1], top + r]])
-    assert carried_by_tools(sim, points, reach=r).tolist() == [True, False]
-    assert carried_by_tools(sim, points).tolist() == [False, False]
+    end_y = hull[:, 1].max()
+    points = np.array([[edge_x + 0.5 * r, p[1], top + r], [edge_x + 2.0 * r, p[1], top + r],
+                       [edge_x + 0.5 * r, end_y - 0.05, top + r],     # beside the face, 5 cm from the blade's end
+                       [edge_x + 0.5 * r, end_y + 0.5 * r, top + r],  # off the corner, within reach
+                       [edge_x + r, end_y + r, top + r]])             # off the corner, 1.41 r away
+    assert carried_by_tools(sim, points, reach=r).tolist() == [True, False, True, True, False]
+    assert carried_by_tools(sim, points).tolist() == [False] * 5
