@@ -965,8 +965,9 @@ class _SceneLoader(yaml.SafeLoader):
 
 
 # PyYAML follows YAML 1.1, where an unquoted `1e-4` is a string, `on`/`yes`/`no` are booleans, `010` is octal (8)
-# and `1:30` is base 60 (90). Scenes read booleans, integers and floats as YAML 1.2's core schema does (what the
-# docs promise: true | false), so those forms are strings that the schema then refuses.
+# and `1:30` is base 60 (90), `2024-05-01` a date and `=` a "value". Scenes read booleans, integers and floats as YAML
+# 1.2's core schema does (what the docs promise: true | false), with no timestamps or values, so those forms are
+# strings that the schema then takes (a name) or refuses.
 _YAML12_SCALARS = (  # (tag, pattern, first characters); int before float: the float pattern matches `10` too
     ("tag:yaml.org,2002:bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
     ("tag:yaml.org,2002:int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
@@ -974,7 +975,8 @@ _YAML12_SCALARS = (  # (tag, pattern, first characters); int before float: the f
                                 r"|\.(?:nan|NaN|NAN)", "-+.0123456789"),
 )
 _SceneLoader.yaml_implicit_resolvers = {
-    first: [(tag, regexp) for tag, regexp in resolvers if tag not in {t for t, _, _ in _YAML12_SCALARS}]
+    first: [(tag, regexp) for tag, regexp in resolvers
+            if tag not in {t for t, _, _ in _YAML12_SCALARS} | {"tag:yaml.org,2002:timestamp", "tag:yaml.org,2002:value"}]
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 for _tag, _pattern, _first in _YAML12_SCALARS:
     _SceneLoader.add_implicit_resolver(_tag, re.compile(f"^(?:{_pattern})$"), list(_first))

@@ -254,6 +254,14 @@ def test_integers_are_decimal_as_in_yaml_1_2(tmp_path):
     assert load_scene(_write(tmp_path, "sim: {seed: 0x1F}\n")).sim.seed == 31
 
 
+def test_a_date_like_name_is_a_string_as_in_yaml_1_2(tmp_path):
+    """YAML 1.1 reads an unquoted `2024-05-01` as a date: a legal name was refused, its message showing the text it
+    refused. YAML 1.2's core schema has no timestamps."""
+    path = _write(tmp_path, "name: 2024-05-01\nsim: {}\n")
+    assert load_scene(path).name == "2024-05-01"
+    assert load_scene(path, ["name=2024-05-02"]).name == "2024-05-02"
+
+
 def test_python_api_overrides_take_paths_and_numpy_numbers_as_given(tmp_path):
     """They were written out as JSON and read back: a Path or a numpy number raised TypeError, and nan came back as
     the string 'NaN'."""
