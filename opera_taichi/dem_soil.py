@@ -55,6 +55,7 @@ FREEZE_SOON = 0.05         # s: sooner when the substeps list less than half of 
 FREEZE_LAYERS = 6          # layers of particles kept live around each unfrozen one (a moving one wakes its partners)
 SETTLE_DAMPING = 5.0       # 1/s, viscous damping used only while a bed settles
 START_TIME = 0.05          # s: a divergence before it names what starts inside the soil as the likely cause
+CRUSH_GAP = 1.0            # grain diameters: a divergence with a tool closing this near a pit's wall or floor names it
 SLEEP_AFTER = 0.05         # s a particle must stay quiet before it sleeps (soil.sleep)
 SLEEP_SPEED = 0.02         # x sqrt(g R): the quiet speed (what a settled bed counts as at rest)
 POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
@@ -241,6 +242,23 @@ _SUBSTEP_ARGS = ("n_act", "block", "skip", "todo", "dt", "bulk_damping", "kin", 
                  "blk_active", "blk_list", "blk_hot", "blk_box", "nbr_off", "nbr_j", "nbr_h", "rev_pos", "rev_holder",
                  "n_frozen", "tool_gap")
 _END_ARGS = ("tools", "tool_acc", "stat", "report")
+
+
+def _pit_faces(beds) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Each bed's floor and four walls as (name, min corner, max corner, outward normal) of an axis-aligned
+    rectangle: the walls span the floor to the ground (z = 0), as the kernels' pit faces do."""
+    faces = []
+    for k, (b_min, b_max) in enumerate(beds):
+        top = np.array([b_max[0], b_max[1], 0.0])
+        faces.append((f"the floor of soil.bed.{k}", b_min, np.array([b_max[0], b_max[1], b_min[2]]),
+                      np.array([0.0, 0.0, -1.0])))
+        for axis in (0, 1):
+            for sign, corner in ((-1.0, b_min), (1.0, b_max)):
+                lo, hi, out = b_min.copy(), top.copy(), np.zeros(3)
+                lo[axis] = hi[axis] = corner[axis]
+                out[axis] = sign
+                faces.append((f"the {'-+'[sign > 0]}{'xy'[axis]} wall of soil.bed.{k}", lo, hi, out))
+    return faces
 
 
 class DemSoil:
@@ -1284,7 +1302,8 @@ class DemSoil:
     def _check_divergence(self, stat: np.ndarray) -> None:
         if stat[dem.S_NONFINITE] > 0:
             raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: {int(stat[dem.S_NONFINITE])} particles "
-                                  f"have a non-finite state (sim.soil_dt or the soil stiffness is unstable)")
+                                  f"have a non-finite state (sim.soil_dt or the soil stiffness is unstable)"
+                                  f"{self._crushing()}")
         speed = math.sqrt(stat[dem.S_SPEED2])
         if speed > self.max_speed:
             # a settled bed does not fly apart by itself in its first steps: something started inside it
@@ -1292,7 +1311,44 @@ class DemSoil:
                      "the likely cause: check tools.*.start and the machines' poses") \
                 if self.time < START_TIME and self._tool_names else ""
             raise DivergenceError(f"soil diverged at t = {self.time:.3f} s: particle speed {speed:.3g} m/s above "
-                                  f"the limit {self.max_speed:g} m/s (soil.max_speed){start}")
+                                  f"the limit {self.max_speed:g} m/s (soil.max_speed){start}{self._crushing()}")
+
+    def _crushing(self) -> str:
+        """The hint for a divergence with a tool closing on a pit's wall or floor within CRUSH_GAP grain diameters
+        (grains squeezed between two stiff surfaces blow up; a tool sliding along a face does not squeeze them), or
+        "". From the tools' poses and velocities now: computed only once the soil diverged."""
+        gap, speed, tool, face = math.inf, 0.0, "", ""
+        faces = _pit_faces(self.beds)
+        for i, name in enumerate(self._tool_names):
+            row = self._tools_host[i]
+            if not faces or row[dem.T_ON] <= 0.0:
+                continue
+            points = self._tool_points(i)
+            # (the nodes lie up to a cell's diagonal inside the surface: the gaps read up to that much too wide)
+            reach = CRUSH_GAP * 2.0 * self.r_max + dem.SQRT_THREE * row[dem.T_H]
+            velocity = row[dem.T_VEL:dem.T_VEL + 3] + np.cross(row[dem.T_ANG:dem.T_ANG + 3],
+                                                               points - row[dem.T_POS:dem.T_POS + 3])
+            for where, lo, hi, out in faces:
+                gaps = np.linalg.norm(np.clip(points, lo, hi) - points, axis=1)
+                closing = velocity @ out
+                near = np.flatnonzero((gaps <= reach) & (closing > 0.0))
+                j = near[np.argmin(gaps[near])] if len(near) else -1
+                if j >= 0 and gaps[j] < gap:
+                    gap, speed, tool, face = float(gaps[j]), float(closing[j]), name, where
+        if not tool:
+            return ""
+        where = f"reaches {face}" if gap == 0.0 else f"is {gap:.2g} m from {face}"
+        return (f"; the tool {tool!r} {where}, closing at {speed:.2g} m/s: grains squeezed between them are the "
+                f"likely cause: slow the tool, keep it off the pit's walls and floor, or lower sim.soil_dt")
+
+    def _tool_points(self, i: int) -> np.ndarray:
+        """World positions of the nodes of tool i's SDF grid inside it (distance <= 0, which a thin plate's nodes
+        within a grid spacing are too): the tool's surface to within a grid spacing."""
+        row = self._tools_host[i]
+        shape = row[dem.T_NX:dem.T_NZ + 1].astype(np.int64)
+        inside = np.argwhere(self._sdf_blocks[i][:, 0].reshape(shape) <= 0.0)
+        local = row[dem.T_ORG:dem.T_ORG + 3] + inside * row[dem.T_H]
+        return row[dem.T_POS:dem.T_POS + 3] + local @ row[dem.T_ROT:dem.T_ROT + 9].reshape(3, 3).T
 
     # ------------------------------------------------------------------------------------------- outputs
     def _totals(self) -> np.ndarray:

@@ -142,6 +142,18 @@ def joint_specs(urdf: str | Path, config: str | Path | None = None,
             for joint in robot.joints if joint.type in MOVABLE}
 
 
+def description_source(machine: dict) -> tuple[str | Path, str | Path | None, dict[str, dict]]:
+    """(urdf, config, actuator_overrides) for load_machine or joint_specs, of a scene's machine entry as plain data
+    (MachineConfig.model_dump(), or a run manifest's resolved scene). An entry without a URDF (a hand-made manifest)
+    means the scene's default machine; an actuator setting left null keeps the machine config's."""
+    from .scene import MachineConfig
+
+    urdf = machine.get("urdf") or MachineConfig.model_fields["urdf"].default
+    overrides = {joint: {k: v for k, v in settings.items() if v is not None}
+                 for joint, settings in (machine.get("actuators") or {}).items()}
+    return urdf, machine.get("config"), overrides
+
+
 def _read_actuators(urdf, config, actuator_overrides, warnings: list[str]):
     """(urdf_path, robot, config_path, cfg, where, actuators): the URDF and machine.yaml resolved and read, and the
     actuated joints' limits with the overrides applied (what load_machine and joint_specs both start from)."""

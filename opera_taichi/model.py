@@ -214,11 +214,10 @@ def machine_entries(scene) -> list[tuple[str, object, object]]:
 
 def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
     from .kinematics import Kinematics
-    from .machine_description import load_machine
+    from .machine_description import description_source, load_machine
 
-    overrides = {j: a.model_dump(exclude_none=True) for j, a in (cfg.actuators or {}).items()}
     try:
-        desc = load_machine(cfg.urdf, cfg.config, overrides)
+        desc = load_machine(*description_source(cfg.model_dump()))
     except UserError as exc:  # an actuator override names its scene key
         if str(exc).startswith("actuators."):
             raise UserError(f"{key}.{exc}") from None

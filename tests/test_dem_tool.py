@@ -270,3 +270,62 @@ def test_tool_spring_is_dropped_when_the_contact_ends():
     soil.advance(0.01)
     assert np.all(soil._surf_h.to_numpy()[0, slot] == 0.0)
     assert soil._surf_id.to_numpy()[0, dem.TOOL_BITS] == 0
+
+
+CRUSH_PIT = ((-0.16, -0.12, -0.12), (0.16, 0.12, 0.0))
+
+
+def _blade_in_pit(x, width, z, max_speed=30.0):
+    """A settled bed in CRUSH_PIT (stiff: E = 100 MPa, so a grain squeezed against a wall flies off well above
+    30 m/s while the blade's push alone stays under 20) and a 4 cm blade at rest at (x, 0, z) in a hole cleared
+    for it, after START_TIME at rest (the hint for a tool that starts inside the soil no longer applies)."""
+    from opera_taichi.dem_soil import START_TIME, DemSoil
+
+    micro = bulk_to_micro(resolve_soil("sand", {"radius": 0.02, "youngs_modulus": 1e8}), bed_depth=0.12)
+    soil = DemSoil(micro, domain_min=(-0.4, -0.4, -0.3), domain_max=(0.4, 0.4, 0.6), beds=[CRUSH_PIT], seed=7,
+                   settle_time=0.3, max_speed=max_speed)
+    half = np.array([0.02, width / 2, 0.1])
+    p = soil.particles()
+    keep = np.any(np.abs(p["positions"] - [x, 0.0, z]) > half + 1.05 * p["radii"][:, None], axis=1)
+    soil.set_particles(p["positions"][keep], radii=p["radii"][keep])
+    blade = soil.add_tool("blade", trimesh.creation.box(2 * half))
+    soil.set_tool_state(blade, [x, 0.0, z], [0, 0, 0, 1], [0, 0, 0], [0, 0, 0])
+    soil.advance(START_TIME)
+    return soil, blade
+
+
+def _drive_until_diverged(soil, blade, speed) -> str:
+    """Drive the blade along +x at `speed` in 5 ms steps until the soil diverges; its message."""
+    from opera_taichi.errors import DivergenceError
+
+    with pytest.raises(DivergenceError) as err:
+        while soil.time < 1.0:
+            soil.set_tool_state(blade, soil.tool_pose(blade)[0], [0, 0, 0, 1], [speed, 0, 0], [0, 0, 0])
+            soil.advance(0.005)
+    return str(err.value)
+
+
+def test_a_divergence_names_the_tool_that_crushes_grains_against_a_pit_wall():
+    """A blade spanning the pit, a few mm off its floor and side walls, driven at 2 m/s into its +x wall through the
+    grains: the run holds until the blade is a grain's diameter from the wall, where a grain squeezed between them
+    flies off above soil.max_speed. The message names the blade and that wall (not the floor or the side walls it
+    slides along) and what to do."""
+    soil, blade = _blade_in_pit(x=0.04, width=0.236, z=-0.015)
+    message = _drive_until_diverged(soil, blade, 2.0)
+    front = soil.tool_pose(blade)[0][0] + 0.02
+    assert CRUSH_PIT[1][0] - front < 2 * soil.r_max  # (it did not diverge before the crush)
+    assert message.startswith(f"soil diverged at t = {soil.time:.3f} s: particle speed ")
+    assert "the tool 'blade' is " in message and " m from the +x wall of soil.bed.0, closing at 2 m/s" in message
+    assert "slow the tool, keep it off the pit's walls and floor, or lower sim.soil_dt" in message
+    assert "this early" not in message
+
+
+@pytest.mark.parametrize("width, z", [(0.1, 0.05), (0.236, -0.015)], ids=["clear of every face", "sliding"])
+def test_a_divergence_away_from_the_pit_walls_claims_no_crushing(width, z):
+    """The blade mid-pit, clear of the pit's faces by more than a grain's diameter, or spanning the pit and sliding
+    along its floor and side walls a few mm off, tripping a low soil.max_speed (5 m/s) by its push alone: the
+    message names no tool and no wall."""
+    soil, blade = _blade_in_pit(x=-0.1, width=width, z=z, max_speed=5.0)
+    message = _drive_until_diverged(soil, blade, 2.0)
+    assert CRUSH_PIT[1][0] - soil.tool_pose(blade)[0][0] > 0.1  # mid-pit
+    assert message.startswith("soil diverged at t = ") and message.endswith("above the limit 5 m/s (soil.max_speed)")

@@ -522,8 +522,7 @@ def machine_joints(run_dir: Path) -> tuple[dict | None, str | None]:
     """({joints.csv column prefix: JointSpec}, None) of the run's machines, from the URDF and config its manifest's
     scene names (with the scene's actuator overrides); (None, why) when they cannot be read (a run folder moved to
     another install, a manifest without a scene)."""
-    from ..machine_description import joint_specs
-    from ..scene import MachineConfig
+    from ..machine_description import description_source, joint_specs
 
     try:
         manifest = json.loads((run_dir / "manifest.json").read_text())
@@ -532,11 +531,7 @@ def machine_joints(run_dir: Path) -> tuple[dict | None, str | None]:
         names = list(manifest.get("machines") or [])
         out = {}
         for i, m in enumerate(entries):
-            # the resolved scene names its URDF; a hand-made manifest without one means the scene's default machine
-            urdf = m.get("urdf") or MachineConfig.model_fields["urdf"].default
-            overrides = {j: {k: v for k, v in a.items() if v is not None}
-                         for j, a in (m.get("actuators") or {}).items()}
-            specs = joint_specs(urdf, m.get("config"), overrides)
+            specs = joint_specs(*description_source(m))
             if len(entries) > 1:  # joints.csv's columns are <machine>.<joint> with several machines
                 name = names[i] if i < len(names) else m.get("name")
                 if not name:
