@@ -1317,6 +1317,12 @@ class DemSoil:
         """The hint for a divergence with a tool closing on a pit's wall or floor within CRUSH_GAP grain diameters
         (grains squeezed between two stiff surfaces blow up; a tool sliding along a face does not squeeze them), or
         "". From the tools' poses and velocities now: computed only once the soil diverged."""
+        try:
+            return self._crushing_tool()
+        except Exception:  # noqa: BLE001 - a hint must never cost the divergence its message
+            return ""
+
+    def _crushing_tool(self) -> str:
         gap, speed, tool, face = math.inf, 0.0, "", ""
         faces = _pit_faces(self.beds)
         for i, name in enumerate(self._tool_names):
