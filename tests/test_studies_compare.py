@@ -510,6 +510,12 @@ def test_a_rerun_replaces_all_outputs_and_out_refuses_another_runs_folder(tmp_pa
     assert sorted(p.name for p in other.iterdir()) == before
     code, err = _cli([other, "--against", other, "--out", out], capsys)  # out holds run's comparison
     assert code == 2 and "--out:" in err and "comparison of another run" in err
+    # nor a folder inside another run's folder (it wrote there), new or one of its own; the compared run's is fine
+    for inside in (other / "cmp_of_run", other / "checkpoints"):
+        code, err = _cli([run, "--joints", run / "joints.csv", "--out", inside], capsys)
+        assert code == 2 and f"lies inside the run folder {other.resolve()}" in err and "\n" not in err
+    assert sorted(p.name for p in other.iterdir()) == before
+    assert _cli([run, "--joints", run / "joints.csv", "--out", run / "cmp"], capsys)[0] == 0
 
 
 def test_a_las_in_us_survey_feet_is_refused(tmp_path, capsys, monkeypatch):

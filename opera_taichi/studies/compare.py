@@ -841,8 +841,14 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
 
 def _check_out(out_dir: Path, run_dir: Path) -> None:
     """--out must not be another run's folder, nor hold another run's comparison (it would be replaced)."""
+    from ..runner import is_run_folder
+
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"--out: {out_dir} is a file; give a folder")
+    holder = next((p for p in out_dir.resolve().parents if is_run_folder(p)), None)
+    if holder is not None and holder != run_dir.resolve():  # (the compared run's own subfolders are its files)
+        raise UserError(f"--out: {out_dir} lies inside the run folder {holder}; give a folder outside it, or leave "
+                        f"--out out to write into {run_dir}")
     if not out_dir.is_dir() or out_dir.resolve() == run_dir.resolve():
         return
     if (out_dir / "manifest.json").is_file():
