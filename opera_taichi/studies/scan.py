@@ -28,6 +28,7 @@ MAX_FIT_POINTS = 20_000      # points used by fit_transform (a random subset of 
 RELIEF_SMOOTHING_M = 0.2     # the relief that can hold x, y, yaw is judged on the terrain smoothed at this scale,
 #                              so grain-sized bumps of a DEM heightmap do not count as features
 MIN_RELIEF_SLOPE = 0.03      # weakest RMS slope (x, y, yaw directions) a rigid fit needs; below it: plane fit
+OFF_TERRAIN_M = 1.0          # fit residual of a scan point on a hole in the terrain: an outlier to every stage's loss
 
 
 # ----------------------------------------------------------------------------------------------- transform
@@ -510,6 +511,9 @@ def fit_transform(points: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarra
 
     p = np.zeros(3 if mode == "plane" else 6)
     keep = np.ones(len(local), bool)
+    lo, hi = np.array([min(x[0], x[-1]), min(y[0], y[-1])]), np.array([max(x[0], x[-1]), max(y[0], y[-1])])
+    # a point on a hole in the terrain (NaN) counts as far off: never cheaper than lying on ground
+    hole = OFF_TERRAIN_M
     for stage, (sz, loss, scale) in enumerate(stages + [(z, "linear", inlier_m)]):
         f = _bilinear(x, y, sz)[0]
         last = stage == len(stages)
@@ -517,9 +521,12 @@ def fit_transform(points: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarra
         def residual(q, f=f, use=keep):
             rot, centre = unpack(q)
             moved = local[use] @ rot.T + centre
-            h = f(moved[:, :2])
-            r = moved[:, 2] - h
-            return np.where(np.isfinite(r), r, 0.0)
+            # a point pushed off the grid is measured at the grid's edge plus the distance it has left by, so leaving
+            # never costs less than staying (a residual of 0 there let the fit shed ground by sliding off it)
+            inside = np.clip(moved[:, :2], lo, hi)
+            out = np.hypot(*(moved[:, :2] - inside).T)
+            r = moved[:, 2] - f(inside)
+            return np.where(np.isfinite(r), np.copysign(np.abs(r) + out, r), hole)
 
         rot, centre = unpack(p)
         moved = local @ rot.T + centre
