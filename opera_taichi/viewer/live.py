@@ -101,6 +101,8 @@ class LiveView(ThreadedObserver):
         self._peak = 0.0
         self._bucket = self.view.info.bucket_index()
         self._build_controls(sim)
+        # (frames are not drawn while no browser is connected: one that connects gets the last frame at once)
+        self.server.on_client_connect(lambda _client: self.view.refresh())
         if not self.quiet:
             print(f"view: {self.url} (Ctrl-C ends the run)", file=sys.stderr)
         super().start(sim, run)
@@ -165,6 +167,9 @@ class LiveView(ThreadedObserver):
 
     def publish(self, snapshot) -> None:
         frame, peak = snapshot
+        if not self.server.get_clients():  # nobody watches: keep the plots' history, draw when a browser connects
+            self.view.record(frame, peak=max(peak, self.view.peak_force))
+            return
         self.view.show(frame, peak=max(peak, self.view.peak_force))
 
     def close(self, sim, status, message) -> None:

@@ -302,21 +302,30 @@ class SceneView:
             return None
         return (w[-1][0] - w[0][0]) / (w[-1][1] - w[0][1])
 
+    def record(self, frame: Frame, *, peak: float | None = None, rtf: float | None = None) -> tuple[float, float]:
+        """Take a frame into the plots' history, the peak force and the real-time factor without drawing it (what
+        show() draws next, or refresh() when a browser connects). Returns (bucket force, real-time factor)."""
+        with self.lock:
+            force = bucket_force(self.info, frame)
+            q, q_cmd = self.machine_history_row(frame.machines)
+            self.history.append(frame.t, q, q_cmd, force)
+            self._last_rtf = self.rtf(frame) if rtf is None else rtf
+            self.peak_force = max(self.peak_force, force) if peak is None else peak
+            self.last = frame
+            return force, self._last_rtf
+
     def show(self, frame: Frame, *, append: bool = True, peak: float | None = None, rtf: float | None = None,
              note: str = "") -> None:
         """Pose everything from a frame. append: add it to the plots' history (False when re-drawing)."""
         with self.lock:
             info = self.info
-            force = bucket_force(info, frame)
             if append:
-                q, q_cmd = self.machine_history_row(frame.machines)
-                self.history.append(frame.t, q, q_cmd, force)
-                rtf = self.rtf(frame) if rtf is None else rtf
-                self._last_rtf = rtf
+                force, rtf = self.record(frame, peak=peak, rtf=rtf)
             else:
+                force = bucket_force(info, frame)
                 rtf = getattr(self, "_last_rtf", None) if rtf is None else rtf
-            self.peak_force = max(self.peak_force, force) if peak is None else peak
-            self.last = frame
+                self.peak_force = max(self.peak_force, force) if peak is None else peak
+                self.last = frame
             masks = tool_masks(info, frame) if info.n_particles else []
             carried = in_tools(info, frame, masks) if info.n_particles else None
             mass = bucket_mass(info, frame, masks) if info.n_particles else float("nan")
