@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import sys
 import threading
@@ -347,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        if args.command in SOLVER_COMMANDS:
+            _import_the_solver()
         return args.handler(args)
     except UserError as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
@@ -366,6 +369,33 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+SOLVER_COMMANDS = ("run", "validate", "validate-physics", "study", "calibrate")
+
+
+def _import_the_solver() -> None:
+    """Import Taichi and the soil's kernels with SIGINT and SIGTERM held. Taichi's decorators swallow any exception
+    while they read their source (a bare except), so a Ctrl-C or SIGTERM in that second of the start was lost and
+    the run went on to its end with exit 0; held, it is taken as usual once the import is done. (Recorded by a
+    handler rather than masked: a process's signal may land on any thread that does not mask it.)"""
+    if "opera_taichi.kernels.dem" in sys.modules or threading.current_thread() is not threading.main_thread():
+        return
+    caught: list[int] = []
+    held = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        import taichi  # noqa: F401
+
+        from .kernels import dem  # noqa: F401  (its kernels are decorated as it loads)
+    finally:
+        for s, handler in held.items():
+            signal.signal(s, handler)
+    if caught:
+        handler = held[caught[0]]
+        if callable(handler):
+            handler(caught[0], None)       # KeyboardInterrupt, or the CLI's Terminated
+        elif handler == signal.SIG_DFL:
+            os.kill(os.getpid(), caught[0])
 
 
 def _terminate(signum, frame):
