@@ -190,17 +190,20 @@ def test_with_no_browser_connected_the_live_view_keeps_the_history_and_draws_not
     monkeypatch.setattr(SceneView, "show", lambda self, frame, **kw: (drawn.append(kw.get("append", True)),
                                                                       show(self, frame, **kw))[1])
     sim = ot.Simulation.from_scene(SCENE, overrides={"soil.overrides.radius": 0.16})
-    view = LiveView(port=free_port(), rate=1000.0, quiet=True)
+    view = LiveView(port=free_port(), quiet=True)
     try:
         view.start(sim, RunContext(out=None))
         for _ in range(20):
             sim.step()
-            view.sample(sim)
+            view.publish(view.snapshot(sim))   # (what the view's thread does with each sample, here in order)
     finally:
         view.close(sim, "done", "")
         sim.close()
-    assert view.published > 0 and len(view.view.history.arrays()) == view.published
+    assert len(view.view.history.arrays()) == 20
     assert True not in drawn      # (close() draws the final status once: append=False)
+    assert view.view.force_plot.data is None or len(view.view.force_plot.data[0]) < 20
+    view.view.refresh(plots=True)  # what a browser that connects is drawn: the frame and the whole history
+    assert len(view.view.force_plot.data[0]) == 20
 
 
 def test_a_run_dug_by_hand_keeps_to_the_wall_clock(tmp_path):

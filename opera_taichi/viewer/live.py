@@ -102,7 +102,7 @@ class LiveView(ThreadedObserver):
         self._bucket = self.view.info.bucket_index()
         self._build_controls(sim)
         # (frames are not drawn while no browser is connected: one that connects gets the last frame at once)
-        self.server.on_client_connect(lambda _client: self.view.refresh())
+        self.server.on_client_connect(lambda _client: self.view.refresh(plots=True))
         if not self.quiet:
             print(f"view: {self.url} (Ctrl-C ends the run)", file=sys.stderr)
         super().start(sim, run)

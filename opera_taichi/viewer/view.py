@@ -385,8 +385,11 @@ class SceneView:
             self.label.text = (f"{self.info.name}  t {frame.t:.1f} s  in {where} {mass_text}  "
                                f"|F| {force / 1e3:.1f} kN (peak {self.peak_force / 1e3:.1f})")
 
-    def refresh(self) -> None:
-        """Draw the last frame again (a control changed while paused or between frames)."""
+    def refresh(self, plots: bool = False) -> None:
+        """Draw the last frame again (a control changed while paused or between frames); plots: the plots too (a
+        browser that connects to a view that drew nothing while none was connected)."""
         with self.lock:
             if self.last is not None:
                 self.show(self.last, append=False, peak=self.peak_force)
+            if plots and self.panel:
+                self._update_plots()
