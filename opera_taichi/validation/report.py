@@ -323,6 +323,22 @@ from the version in the header. The knobs, in the order to tune them:
    H): the loose bed hardens as the wedge ahead of the tool compacts, more at coarse resolution, and the blade's
    window measures the hardened cut. A tool law at the edge could remove at most the force near the edge, about
    0.2 x of the FEE; the rest is the bulk's.
+   **A calibration confined to the tool's active zone passes the blade at 8 across and reaches the 4-across line,
+   but the wall falls to half of Rankine (2026-11-27; a scratch copy, one run each on seed 0 unless said, the
+   mapping's bed).** The heaps have no tool and need the rolling resistance, so a law that drops it only where a tool
+   works keeps them. While the tool moves, the pairs held by a grain in a box from 0.35 m behind the tool's lower
+   edge to 3 or 5 d ahead of it, and from 2 or 4 grain diameters below the edge up, had no rolling resistance and
+   1.0-1.4 x the mapping's friction (`validate-physics blade_cut|passive_wall --resolution 4|8`, the box patched into
+   the pair forces). At 4 across, a90 read 1.16-1.26 x the FEE (3 d, friction 1.0 / 1.3 / 1.4 x: 1.26 / 1.16 / 1.22;
+   5 d, 1.0 x: 1.20; the whole bed at 1.4 x: 1.14) and a60 delta20 1.24-1.33 (1.0 / 1.2 / 1.4 x: 1.24 / 1.33 / 1.25;
+   5 d, 1.0 x: 1.26): the friction in the box moves the draft less than single runs spread, and about 1.2 x is left
+   by spheres without rolling resistance in a loose bed. At 8 across (5 d, 1.0 x) a90 read 0.89 x and a60 delta20
+   0.97 x, inside their 15%. But the passive wall is the same tool law (at rake 90 and delta 0 Rankine is the
+   blade's FEE): with the box (5 H, 1.0 x) its early peak read 0.49 / 0.51 / 0.57 x Rankine on seeds 0 / 1 / 2
+   against 0.85 / 0.95 / 1.08 x with the mapping, far under the 0.8 its gate asks. The wall's early peak needs the
+   rolling resistance that the blade's steady cut must lose, so no law that treats a tool's grains alike passes
+   both at 4 across; a wedge whose strength is the equation's (AGX Terrain's aggregate) is the route left that
+   keeps real time, and it would make the blade gates a check of that wedge, not of the grains.
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
