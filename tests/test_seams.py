@@ -323,3 +323,43 @@ def test_a_grain_resting_on_a_tools_rim_is_carried_not_ground():
                        [edge_x + r, end_y + r, top + r]])             # off the corner, 1.41 r away
     assert carried_by_tools(sim, points, reach=r).tolist() == [True, False, True, True, False]
     assert carried_by_tools(sim, points).tolist() == [False] * 5
+
+
+class SlowStart(ot.Observer):
+    """An observer whose start takes 100 s of the runner's clock (a view's server, a bridge's connection)."""
+    rate = 1.0
+
+    def __init__(self, clock):
+        self.clock = clock
+
+    def start(self, sim, run):
+        self.clock.now += 100.0
+
+    def sample(self, sim):
+        pass
+
+
+def test_an_observers_start_counts_as_set_up_not_as_stepping(tmp_path, monkeypatch):
+    import json
+    import time as real_time
+
+    from opera_taichi import runner
+
+    class Clock:  # the runner's clock: real time plus what the observer's start adds
+        now = 0.0
+
+        def perf_counter(self):
+            return real_time.perf_counter() + self.now
+
+        def __getattr__(self, name):
+            return getattr(real_time, name)
+
+    clock = Clock()
+    monkeypatch.setattr(runner, "time", clock)
+    scene = ot.load_scene(DIG_CYCLE, ["sim.duration=0.2", "output.plots=false"])
+    result = ot.run_scene(scene, out_dir=tmp_path / "run", quiet=True, observers=[SlowStart(clock)])
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert result.status == "done"
+    assert manifest["setup_wall_time_s"] >= 100.0          # the start is the run's set-up
+    assert manifest["wall_time_s"] < 100.0                 # and not in the stepping's wall time
+    assert result.real_time_factor > 0.2 / 100.0           # the real-time factor is the stepping's
