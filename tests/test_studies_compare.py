@@ -553,7 +553,7 @@ def test_misplaced_scan_threshold_and_flag_order_are_refused(tmp_path, capsys):
     run = make_run(tmp_path / "run")
     high = machine_las(tmp_path / "high.las", dz=1.5)
     code, err = _cli([run, "--terrain", high, "--out", tmp_path / "h"], capsys)
-    assert code == 2 and "lies +1.5 m above the run's initial terrain" in err and "\n" not in err
+    assert code == 2 and "lies 1.5 m above the run's initial terrain" in err and "\n" not in err
     after = machine_las(tmp_path / "after.las")
     code, err = _cli([run, "--terrain", after, "--change-threshold", "5", "--out", tmp_path / "t"], capsys)
     assert code == 2 and "--change-threshold: neither the run nor" in err and "largest change 0.5" in err
@@ -852,3 +852,54 @@ def test_a_fit_from_the_true_placement_keeps_it_when_the_scans_grains_differ_fro
         moved = float(np.abs(fit.transform.apply(pts) - pts).max())
         assert moved < 0.05, (moved, fit.describe())  # within a cell: the grains are 3 cm rough
         assert fit.inlier_fraction > 0.9 * ground, fit.describe()
+
+
+def test_runs_without_soil_compare_by_their_joints(tmp_path):
+    t = np.arange(0.0, 10.0, 0.01)
+    q = {"boom_joint": 0.4 * np.sin(0.5 * t), "arm_joint": 1.0 + 0.3 * np.cos(0.4 * t)}
+    run = make_run(tmp_path / "run", joints=(t, q))
+    for name in ("terrain_initial.npz", "terrain_final.npz"):  # a scene with no soil writes no terrain
+        (run / name).unlink()
+    same = cmp.compare(run, against=run, out=tmp_path / "self")
+    assert same["joints_rmse_rad"] == 0.0 and same["joints_lag_s"] == 0.0
+    assert same["joints_rate_ratio"] == pytest.approx(1.0)
+    assert "terrain_rmse_m" not in same
+
+
+def test_the_dig_area_grows_by_a_disc_of_the_margin_and_an_endless_margin_is_refused(tmp_path, capsys):
+    from scipy.ndimage import binary_dilation
+
+    rng = np.random.default_rng(3)
+    dz = np.where(rng.random((60, 45)) > 0.995, 0.1, 0.0)
+    for m in (1, 3, 7, 200):
+        k = np.arange(-m, m + 1)
+        disc = (k[:, None] ** 2 + k[None, :] ** 2) <= m ** 2
+        assert np.array_equal(cmp.dig_area([dz], 0.02, m), binary_dilation(np.abs(dz) > 0.02, disc)), m
+    run = make_run(tmp_path / "run")
+    for bad in ("inf", "nan", "-1"):
+        code, err = _cli([run, "--against", run, "--margin", bad], capsys)
+        assert code == 2 and "--margin: expected a finite distance" in err and "\n" not in err, bad
+    res = cmp.compare(run, against=run, out=tmp_path / "wide", margin_m=1e4)  # the whole grid, at once
+    assert res["dig_area_m2"] == pytest.approx(len(X) * len(Y) * CELL ** 2)
+
+
+def test_a_scan_with_heights_in_centimetres_is_refused_placed_or_fitted(tmp_path, capsys):
+    run = make_run(tmp_path / "run")
+    gx, gy = np.meshgrid(X, Y, indexing="ij")
+    z = ground(gx, gy) + trench(gx, gy) + heave(gx, gy)
+    pts = np.stack([gx.ravel(), gy.ravel(), 100.0 * z.ravel()], axis=1)  # x, y in m, heights in cm
+    np.savetxt(tmp_path / "cm.xyz", pts)
+    for extra in ([], ["--fit-transform"]):
+        code, err = _cli([run, "--terrain", tmp_path / "cm.xyz", *extra], capsys)
+        assert code == 2 and "heights in centimetres" in err and "\n" not in err, extra
+    # wider than its heights span (four far corners): refused on the run's terrain, where it is placed
+    corners = np.array([[sx * 150.0, sy * 150.0, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    np.savetxt(tmp_path / "wide_cm.xyz", np.vstack([pts, corners]))
+    code, err = _cli([run, "--terrain", tmp_path / "wide_cm.xyz"], capsys)
+    assert code == 2 and "over the run's terrain" in err and "heights in centimetres" in err
+    np.savetxt(tmp_path / "m.xyz", pts * [1.0, 1.0, 0.01])  # the same scan in metres compares
+    assert cmp.compare(run, terrain=tmp_path / "m.xyz", out=tmp_path / "m")["terrain_rmse_m"] < 0.01
+    low = pts * [1.0, 1.0, 0.01] - [0.0, 0.0, 3.0]
+    np.savetxt(tmp_path / "low.xyz", low)
+    code, err = _cli([run, "--terrain", tmp_path / "low.xyz"], capsys)
+    assert code == 2 and "lies 3 m below" in err

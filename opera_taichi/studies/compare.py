@@ -66,6 +66,7 @@ SWEEP_FACTOR = 20.0        # a swing's log sweeping more than this many times th
 MIN_MOVING_S = 1.0         # s: a joint that moves for less than this in the log gives no evidence of its units
 CLOCK_TIME_S = 1e6         # s: a CSV log whose t starts later than this (11.6 days) holds clock time (epoch seconds)
 FAR_FACTOR = 50.0          # a scan this many times larger (or smaller) than the run's terrain is in another unit
+MIN_RELIEF_M = 0.1          # the run's terrain's height spread, at least, that a scan's is held against (a flat bed)
 MAX_VERTICAL_OFFSET_M = 2.0  # a placed scan this far above/below the run's terrain has not been placed
 MISPLACED_SHARE = 0.8      # a scan off the run's undisturbed ground by more than the change threshold on this share of
                            # it, one way, is misplaced vertically
@@ -143,14 +144,13 @@ def machine_pose(run_dir: Path) -> tuple[np.ndarray | None, float]:
 # ----------------------------------------------------------------------------------------------- terrain
 def dig_area(changes, threshold: float, margin_cells: int) -> np.ndarray:
     """Cells where any change map exceeds the threshold, grown by margin_cells (a disc)."""
-    from scipy.ndimage import binary_dilation
+    from scipy.ndimage import distance_transform_edt
 
     mask = np.zeros(changes[0].shape, bool)
     for dz in changes:
         mask |= np.nan_to_num(np.abs(dz), nan=0.0) > threshold
-    if margin_cells > 0 and mask.any():
-        k = np.arange(-margin_cells, margin_cells + 1)
-        mask = binary_dilation(mask, (k[:, None] ** 2 + k[None, :] ** 2) <= margin_cells ** 2)
+    if margin_cells > 0 and mask.any():  # (the distance to the nearest changed cell: linear in the grid's size)
+        mask = distance_transform_edt(~mask) <= margin_cells
     return mask
 
 
@@ -234,6 +234,10 @@ def place_scan(scan: "scans.Scan", grid: dict, transform: "scans.Transform | Non
     if size_s < size_r / FAR_FACTOR:
         raise UserError(f"{key}: {what}, 1/{size_r / max(size_s, 1e-12):.0f} of the run's {ext_run[0]:.3g} x "
                         f"{ext_run[1]:.3g} m terrain: a scan in kilometres or another unit? give it in metres")
+    spread_z = float(np.subtract(*np.percentile(pts[:, 2], [99, 1])))
+    if spread_z > size_s:  # soil cannot stand steeper than 45 deg across a whole scan
+        raise UserError(f"{key}: {what}: its heights span more than it is wide (1st to 99th percentile "
+                        f"{spread_z:.4g}): heights in centimetres or another unit? give them in metres")
     fit_result = None
     if fit:
         start = transform or scans.initial_guess(pts, x, y, z_run)
@@ -249,9 +253,14 @@ def place_scan(scan: "scans.Scan", grid: dict, transform: "scans.Transform | Non
                         f"x {lo[0]:.4g}..{hi[0]:.4g}, y {lo[1]:.4g}..{hi[1]:.4g}, z {lo[2]:.4g}..{hi[2]:.4g} m, the "
                         f"run's terrain covers x {x[0]:.3g}..{x[-1]:.3g}, y {y[0]:.3g}..{y[-1]:.3g} m "
                         f"({int(common.sum())} common cells); give --transform x,y,z,yaw_deg or --fit-transform")
+    spread_s, spread_r = (float(np.subtract(*np.percentile(v[common], [99, 1]))) for v in (gridded.z, z_run))
+    if spread_s > FAR_FACTOR * max(spread_r, MIN_RELIEF_M):
+        raise UserError(f"{key}: {scan.path.name} spans {spread_s:.4g} in height over the run's terrain (1st to 99th "
+                        f"percentile over {int(common.sum())} common cells), {spread_s / max(spread_r, MIN_RELIEF_M):.0f}"
+                        f" x the run's {spread_r:.3g} m: heights in centimetres or another unit? give them in metres")
     offset = float(np.median(gridded.z[common] - z_run[common]))
     if abs(offset) > MAX_VERTICAL_OFFSET_M:
-        raise UserError(f"{key}: {scan.path.name} lies {offset:+.3g} m {'above' if offset > 0 else 'below'} the run's "
+        raise UserError(f"{key}: {scan.path.name} lies {abs(offset):.3g} m {'above' if offset > 0 else 'below'} the run's "
                         f"terrain (median over {int(common.sum())} common cells); give --transform with its z or "
                         f"--fit-transform")
     return gridded, fit_result, transform
@@ -292,7 +301,7 @@ def terrain_comparison(run_dir: Path, *, reference_final: dict | None, reference
             if shifted > MISPLACED_SHARE:
                 initial = "the run's initial terrain" if reference_initial is None else "its scan before the dig"
                 raise UserError(
-                    f"{key}: {label} lies {offset:+.3g} m {'above' if offset > 0 else 'below'} {initial} "
+                    f"{key}: {label} lies {abs(offset):.3g} m {'above' if offset > 0 else 'below'} {initial} "
                     f"over {100 * shifted:.0f}% of the ground the run left undisturbed (median over "
                     f"{int(still.sum())} cells), more than "
                     f"--change-threshold {change_threshold:g} m: every cell would count as dug; "
@@ -732,8 +741,8 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
         raise UserError("--transform / --fit-transform: place a scan; give --terrain")
     if not change_threshold > 0:
         raise UserError(f"--change-threshold: expected a positive height in m, got {change_threshold!r}")
-    if not margin_m >= 0:
-        raise UserError(f"--margin: expected a distance in m >= 0, got {margin_m!r}")
+    if not 0 <= margin_m < math.inf:
+        raise UserError(f"--margin: expected a finite distance in m >= 0, got {margin_m!r}")
     if isinstance(transform, str):
         transform = scans.Transform.parse(transform)
     out_dir = Path(out) if out is not None else run_dir
@@ -748,8 +757,8 @@ def compare(run_dir, *, terrain=None, terrain_before=None, joints=None, against=
         other = run_folder(against, "--against")
         result["against"] = str(Path(other).resolve())
         label = f"run {other.name}"
-        grid = read_terrain(run_dir / "terrain_initial.npz", "RUN_DIR")
-        if has_terrain:
+        if has_terrain:  # (a run without soil is compared by its joints)
+            grid = read_terrain(run_dir / "terrain_initial.npz", "RUN_DIR")
             o0 = read_terrain(other / "terrain_initial.npz", "--against")
             o1 = read_terrain(other / "terrain_final.npz", "--against")
             pts = np.stack(np.meshgrid(grid["x"], grid["y"], indexing="ij"), axis=-1).reshape(-1, 2)
