@@ -383,6 +383,16 @@ class BulletMachine:
             track_stick=np.zeros((0, 2)) if self._ground is None else self._ground.stick.copy(),
             track_contacts=np.zeros((0, 7)) if self._ground is None else np.column_stack(self._ground.contacts))
 
+    def in_world(self, s) -> bool:
+        """Whether Bullet holds this machine as the state s has it (joints and base): false for a state edited after
+        it was taken, which a restored world would otherwise overrule."""
+        c = self.client
+        states = pb.getJointStates(self.body, list(self._indices) + list(self._other_indices), physicsClientId=c)
+        pos, orn = pb.getBasePositionAndOrientation(self.body, physicsClientId=c)
+        return (np.array_equal([j[0] for j in states], np.concatenate([s.q, s.other_q]))
+                and np.array_equal([j[1] for j in states], np.concatenate([s.qd, s.other_qd]))
+                and np.array_equal(pos, s.base_com_xyz) and np.array_equal(orn, s.base_com_quat))
+
     def set_state(self, s) -> None:
         if list(s.joints) != self.joint_names:
             raise ValueError(f"machine {self.name}: the state's joints {list(s.joints)} are not this machine's "

@@ -219,6 +219,9 @@ class Simulation:
             self.machines[name].set_state(ms)
         if state.rigid is not None and self.world is not None:
             self.world.restore_state(state.rigid)  # after the machines' resets, which would clear its contacts
+            for name, ms in state.machines.items():  # a pose edited into the state wins over the saved world's
+                if not self.machines[name].in_world(ms):
+                    self.machines[name].set_state(ms)
         self.step_count, self.t = int(state.step), float(state.t)
         self.tool_wrench = np.array(state.tool_wrench, dtype=np.float64).reshape(-1, 6)
         self.applied = Control.from_dict(state.control.to_dict()) if state.control is not None \

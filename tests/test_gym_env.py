@@ -82,6 +82,11 @@ def test_random_initial_offsets_follow_the_seed(env):
     assert not np.array_equal(a["q"], c["q"])
     offsets = a["q"] - start["q"]
     assert np.all(np.abs(offsets) <= 0.05 + 1e-6) and np.any(offsets != 0.0)
+    # the machine is posed there, not only its observation: the tip moves with it, and a zero action holds it
+    assert np.linalg.norm(a["tip"] - start["tip"]) > 0.01
+    a, _ = env.reset(seed=7, options=opts)
+    after, *_ = env.step(np.zeros(4))
+    assert np.all(np.abs(after["q"] - a["q"]) < 1e-3) and np.linalg.norm(after["tip"] - a["tip"]) < 0.01
 
 
 def test_zero_action_holds_the_bucket_in_the_air_with_no_soil_wrench(env):
