@@ -82,6 +82,8 @@ def test_ros2_endpoint_round_trip_and_cdr_on_the_wire(tmp_path):
     text = err.read_text()
     assert code == 143, text
     assert text.count("needs position[] as long as joint_name[] (2), got 1") == 1
-    assert json.loads((out / "manifest.json").read_text())["status"] == "interrupted"
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "interrupted"
+    assert any("reconnected" in w for w in manifest["run_warnings"])  # the loss and the reconnection, both kept
     assert "ROS-TCP-Endpoint v0.7.0" in text and "ROS2: CDR" in text
     assert text.count("lost the endpoint") == 1 and "reconnected" in text

@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import socket
 import struct
-import sys
 import threading
 
 from ..errors import UserError
@@ -175,7 +174,7 @@ class RosTcpTransport:
                     return
                 try:
                     self._connect(HANDSHAKE_TIMEOUT)
-                    print(f"ros-tcp: reconnected to {self.host}:{self.port}", file=sys.stderr)
+                    self._log(("tcp", "reconnected"), f"ros-tcp: reconnected to {self.host}:{self.port}")
                 except (OSError, ConnectionError):
                     pass
                 continue
