@@ -76,6 +76,8 @@ class Manifest(Observer):
     def close(self, sim, status, message) -> None:
         self.data.update(status=status, message=message, finished=now_iso(), heartbeat=now_iso())
         self.data.pop("status_before_resume", None)
+        if sim is not None and sim.warnings:  # with what the observers closed before it said (a bridge's lost peer)
+            self.data["run_warnings"] = list(sim.warnings)
         self.write()
 
 

@@ -363,3 +363,23 @@ def test_an_observers_start_counts_as_set_up_not_as_stepping(tmp_path, monkeypat
     assert manifest["setup_wall_time_s"] >= 100.0          # the start is the run's set-up
     assert manifest["wall_time_s"] < 100.0                 # and not in the stepping's wall time
     assert result.real_time_factor > 0.2 / 100.0           # the real-time factor is the stepping's
+
+
+class SaysOnClose(ot.Observer):
+    """An observer that has something to say as the run closes (a bridge whose peer went away meanwhile)."""
+    rate = 1.0
+
+    def sample(self, sim):
+        pass
+
+    def close(self, sim, status, message):
+        sim._warn("the peer went away while the run closed")
+
+
+def test_what_an_observer_says_as_the_run_closes_is_kept_in_the_manifest(tmp_path):
+    import json
+
+    scene = ot.load_scene(DIG_CYCLE, ["sim.duration=0.1", "output.plots=false"])
+    ot.run_scene(scene, out_dir=tmp_path / "run", quiet=True, observers=[SaysOnClose()])
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert manifest["run_warnings"] == ["the peer went away while the run closed"]
