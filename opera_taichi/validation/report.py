@@ -339,6 +339,28 @@ from the version in the header. The knobs, in the order to tune them:
    rolling resistance that the blade's steady cut must lose, so no law that treats a tool's grains alike passes
    both at 4 across; a wedge whose strength is the equation's (AGX Terrain's aggregate) is the route left that
    keeps real time, and it would make the blade gates a check of that wedge, not of the grains.
+   **A first soil wedge (AGX Terrain's aggregate, reduced to a kinematic wedge) passes the blade at 4 and 8 across,
+   and the wall reads 1.23 x Rankine (2026-11-27; a scratch copy kept as `docs/experiments/soil_wedge_prototype.patch`,
+   one run each on seed 0, `WEDGE_PROTO=1 validate-physics blade_cut|passive_wall --resolution 4|8`).** The grains
+   ahead of a moving tool's face, above its edge and behind the failure plane through the edge (at the FEE's beta)
+   move with the wedge: along the plane, at the speed that keeps them on the face, neither integrated nor touching the
+   tool. What the free grains above put on them is the surcharge; their weight is their mass. The wedge's equilibrium
+   (the face's push at delta with adhesion along it, the plane's reaction at phi with cohesion along it) gives the
+   push on the tool, and the plane's reaction goes to the grains beyond it: the normal contact across the plane, the
+   rest spread by mass over a layer 2.5 r deep. Three fixes made it run the whole window. The plane starts a grain
+   radius under the edge (from the edge, the grains the edge meets piled up under it: 0.6 x more draft, rising). Grains
+   within 0.9 r of the face stay resolved (else they rise into the blade and burst out at the top). The contacts
+   across the plane keep their normal force (else wedge and ground interpenetrate, and the overlaps burst as grains
+   leave the wedge). Draft / FEE: a90 1.07 x and a60 delta20 1.12 x at 4 across (1,451 grains), a90 0.97 x at 8
+   across (5,879 grains); the wall's early peak 1.23 x Rankine at 4 across H (its gate: within 20%). But the push
+   follows the wedge's counted grain mass: 80-100 kg at 4 across, where the equation's wedge holds 88 kg from the
+   edge and 111 kg from a radius under it, and 76-86% of the latter at 8 across. So the ratio follows how many grains
+   the region holds, not the soil's strength, and the wall's peak catches the mass's high moments. Left before it is
+   the product: the wedge's weight from the bulk density over the surface the heightmap gives (AGX's occupancy)
+   rather than the grains counted; the cut depth, rake and plane of motion of any tool from its pose and the live
+   terrain, the bucket's edge and floor among them; deterministic block sums instead of atomics; sleeping grains by
+   the plane; the wedge's momentum; a scene key; and the tests (Newton's third law through the plane, the mass, a
+   tool at rest, the plane-strain limit).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
