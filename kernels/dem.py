@@ -65,6 +65,7 @@ import taichi as ti
 # nothing to do, more than a few hundred awake particles cost to compute; DemSoil picks one per run of substeps.
 SERIAL_LOOPS = False
 PER_PARTICLE = False  # the step loop's layout: a block of particles per iteration (CPU) or one (GPU); see substep
+WEDGES = False  # the substep tests each particle's part in the tools' soil wedges (a variant: free where no tool has one)
 MAX_TOOLS = 4
 MAX_PITS = 16
 WALL_SLOTS = 4
@@ -141,7 +142,14 @@ WAKE_APPROACH = 0.1
 SLOW_FACTOR = 4.0
 CREEP_FRACTION = 0.01  # slower than this fraction of the wake speed a tool is parked (a bucket the hydraulics hold)
 P_PITS = 32       # pits: 6 entries each (min xyz, max xyz), MAX_PITS of them
-N_PRM = P_PITS + 6 * MAX_PITS
+# The soil wedge at a tool's cutting edge (see _wedge_role): the bulk soil's strength, which the wedge's equilibrium
+# takes instead of the grains'
+P_WG_PHI = P_PITS + 6 * MAX_PITS  # internal friction angle, rad
+P_WG_DELTA = P_WG_PHI + 1         # soil-tool friction angle, rad
+P_WG_C = P_WG_PHI + 2             # cohesion, Pa
+P_WG_CA = P_WG_PHI + 3            # adhesion, Pa
+P_WG_GAMMA = P_WG_PHI + 4         # bulk unit weight, N/m^3 (the failure angle's depth terms)
+N_PRM = P_WG_PHI + 5
 
 # stat indices
 S_DISP2 = 0       # max squared displacement since the last neighbour build (this substep)
@@ -157,7 +165,11 @@ S_HALT = 6        # 1: the lists need a rebuild before the next substep
 S_DONE = 7        # substeps done since begin_chunk
 S_ACTIVE = 8      # most particle slots in the listed blocks of one substep since begin_chunk
 S_THAW = 9        # 1: a frozen particle (DemSoil's frozen prefix) was asked to wake: the host repartitions
-N_STAT = 10
+# the wedges' sums over one substep on a GPU (quantised atomics; the CPU sums them per block in partial), reset after
+# each substep's equilibrium, and each wedge's front surface (atomic max, order-free on both)
+S_WG_SUM = 10
+S_WG_TOP = S_WG_SUM + 8 * MAX_TOOLS
+N_STAT = S_WG_TOP + MAX_TOOLS
 # a rebuild's sizes (DemSoil._sizes), passed from kernel to kernel in its compute graph
 SZ_ACTIVE = 0     # active particles (sort_by_bucket)
 SZ_ENTRIES = 1    # neighbour-list entries (count_neighbors)
@@ -167,13 +179,46 @@ N_SIZES = 2
 PART_LOST_MASS = 6 * MAX_TOOLS
 PART_LOST_COUNT = PART_LOST_MASS + 1
 PART_NONFINITE = PART_LOST_MASS + 2
-PART_WIDTH = PART_LOST_MASS + 3
+# then per tool the wedge's sums: what free grains put on its grains (3), what the layer beyond its failure plane puts
+# on them (3), their mass, the layer's mass
+PART_WG = PART_LOST_MASS + 3
+WG_SUMS = 8
+PART_WIDTH = PART_WG + WG_SUMS * MAX_TOOLS
+PART_BASE = PART_WG  # the columns summed for every substep (the wedges' only for a tool that has one)
 
 # tools row layout
 T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2, 3, 4, 5, 8, 9, 12, 21, 24
 T_BS = 27         # bounding sphere of the SDF grid (link-frame centre, radius): no contact outside it
 T_TRAVEL = 31     # how far, at most, a point near the tool has moved in the tool's frame since the start (m; tool_gap)
-T_WIDTH = 32
+# A cutting edge (link frame; host-set): its centre, the face's normal (into the soil it cuts) and the direction up
+# the face away from the edge, unit vectors, and the edge's half width; T_WG_ON 1 where the tool has one. The kernels
+# keep the rest: the failure angle, the front surface's height and the layer's acceleration (last substep's).
+T_WG_ON = 32
+T_WG_E = 33
+T_WG_N = 36
+T_WG_U = 39
+T_WG_HW = 42
+T_WG_BETA = 43
+T_WG_TOP = 44
+T_WG_ACC = 45
+# and, refreshed whenever the tool moves (_wedge_refresh), the wedge in the world for the particles' tests: 1 while it
+# cuts, the edge's centre, the face normal, the edge's direction, the failure plane's normal into the ground, the
+# wedge's velocity
+T_WG_LIVE = 48
+T_WG_EW = 49
+T_WG_NW = 52
+T_WG_YW = 55
+T_WG_MG = 58
+T_WG_VW = 61
+T_WG_PUSH = 64     # the force the wedge put on the tool in the last substep (world; part of tool_acc)
+T_WIDTH = 67
+# wedge roles of a particle (_wedge_role): kind in the low two bits, the tool above them
+WG_FREE, WG_IN, WG_LAYER = 0, 1, 2
+WG_LOW = 1.0       # the failure plane starts this many grain radii under the edge: the grains the edge meets rise
+WG_LAYER_R = 2.5   # radii: the layer beyond the plane that carries its reaction
+UNKNOWN_TOP = 1e6  # m: a front surface below -UNKNOWN_TOP is not known yet (-HUGE)
+WG_FRONT_R = 8.0   # radii: the band beyond the failure plane where the ground ahead is read (_wedge_front)
+WG_REST = 0.1      # x the wedge's speed: a grain slower than this is at rest there
 # A particle's tool clearance (tool_gap) is trusted while the tools have travelled less than it: within
 # CLEAR_MARGIN x the bounding radius of the sphere, the motion is bounded by the translation and the rotation at
 # that lever; the trilinear SDF of a distance field changes by at most sqrt(3) per metre (each partial derivative
@@ -291,6 +336,9 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
     (e: the entry), i.e. into j's reverse segment, which step() reads sequentially (scattered stores are
     cheaper than scattered loads). No atomics: deterministic for a given thread count, and j gets exactly
     minus i's force (momentum is conserved to round-off).
+    A soil wedge's grains (_wedge_role) move together: no force between two of them; across its failure plane a
+    pair keeps only its normal push (the plane's strength is the wedge's equilibrium), which a wedge grain holding
+    the pair sums in own[i, 1] instead of a torque (it does not spin).
     """
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
@@ -321,8 +369,19 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
         mu_r = prm[P_MU_R]
         f = vec3(0.0)
         t = vec3(0.0)
+        f_plane = vec3(0.0)
+        role_i = WG_FREE
+        if ti.static(WEDGES):
+            role_i = _wedge_role(x_i, r_i, tools)
         for e in range(nbr_off[i], nbr_off[i + 1]):
             j = nbr_j[e]
+            together = False  # both in a wedge: no force
+            plane = False     # a wedge's grain and one of the layer beyond its failure plane: the normal push only
+            if ti.static(WEDGES) and role_i != WG_FREE:
+                role_j = _wedge_role(kin[j, 0], prop[j][0], tools)
+                if role_j != WG_FREE:
+                    together = (role_i & 3) == WG_IN and (role_j & 3) == WG_IN
+                    plane = (role_i >> 2) == (role_j >> 2) and (role_i & 3) != (role_j & 3)
             if sleep_steps > 0:
                 asleep_j = (surf_id[j, TOOL_BITS] >> CALM_SHIFT) >= sleep_steps
                 if asleep_i and asleep_j:
@@ -360,7 +419,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
             f_pair = vec3(0.0)  # on i
             t_j = vec3(0.0)
             touching = False
-            if d2 < reach * reach and d2 > 0.0:
+            if d2 < reach * reach and d2 > 0.0 and not together:
                 d = ti.sqrt(d2)
                 n = dx * (1.0 / d)
                 gap = d - r_sum
@@ -376,25 +435,37 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                     # contact velocity and for both torques
                     w_j = kin[j, 2]
                     v_c = (v_i - kin[j, 1]) - (r_i * w_i + r_j * w_j).cross(n)
+                    mu_pair = mu
+                    mu_r_pair = mu_r
+                    if plane:
+                        mu_pair = 0.0
+                        mu_r_pair = 0.0
                     force, f_t, m_r, h = contact_law(n, -gap, v_c, w_i - w_j, sqrt_mk, sqrt_ik, 0.25 * r_sum,
-                                                     nbr_h[e], k, mu, mu_r, prm, dt)
+                                                     nbr_h[e], k, mu_pair, mu_r_pair, prm, dt)
                     f_pair = force
                     c = n.cross(f_t)
                     t += m_r - r_i * c
                     t_j = -r_j * c - m_r
                     nbr_h[e] = h
-                f_pair -= cohesion_force(gap, prm) * n
+                if not plane:
+                    f_pair -= cohesion_force(gap, prm) * n
             if not touching:
                 h_old = nbr_h[e]
                 if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
                     nbr_h[e] = vec6f(0.0)
             f_out = ti.cast(-f_pair, ti.f32)
             f -= ti.cast(f_out, ti.f64)  # exactly minus what j gets
+            if plane:
+                f_plane -= ti.cast(f_out, ti.f64)
             q = rev_pos[e]
             pair_out[q, 0] = f_out
             pair_out[q, 1] = ti.cast(t_j, ti.f32)
-        own[i, 0] = f
-        own[i, 1] = t
+        if ti.static(WEDGES) and (role_i & 3) == WG_IN:
+            own[i, 0] = f - f_plane
+            own[i, 1] = f_plane
+        else:
+            own[i, 0] = f
+            own[i, 1] = t
 
 
 # ----------------------------------------------------------------------------------------------- static geometry
@@ -573,6 +644,168 @@ def _rotation_from_vector(phi):
 
 
 # ----------------------------------------------------------------------------------------------- integration
+@ti.func
+def _wedge_frame(tools: ti.template(), t):
+    """Tool t's cutting edge in the world: its centre e, the face normal n and up-face direction u, the edge's
+    direction y, the horizontal h the face pushes along, the failure plane's direction f (up from the edge at the
+    failure angle, in the vertical plane of h) and its normal m_g into the ground beyond it, and the edge's velocity;
+    hn: the face normal's horizontal length (a face looking down or up cuts nothing)."""
+    rot = _tool_rotation(tools, t)
+    origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
+    e = origin + rot @ vec3(tools[t, T_WG_E], tools[t, T_WG_E + 1], tools[t, T_WG_E + 2])
+    n = rot @ vec3(tools[t, T_WG_N], tools[t, T_WG_N + 1], tools[t, T_WG_N + 2])
+    u = rot @ vec3(tools[t, T_WG_U], tools[t, T_WG_U + 1], tools[t, T_WG_U + 2])
+    y = n.cross(u)
+    h = vec3(n[0], n[1], 0.0)
+    hn = h.norm()
+    h = h / ti.max(hn, 1e-12)
+    beta = tools[t, T_WG_BETA]
+    f = ti.cos(beta) * h + vec3(0.0, 0.0, ti.sin(beta))
+    m_g = y.cross(f)
+    m_g = m_g / ti.max(m_g.norm(), 1e-12)
+    if m_g[2] > 0.0:
+        m_g = -m_g
+    vel = vec3(tools[t, T_VEL], tools[t, T_VEL + 1], tools[t, T_VEL + 2])
+    ang = vec3(tools[t, T_ANG], tools[t, T_ANG + 1], tools[t, T_ANG + 2])
+    v_e = vel + ang.cross(e - origin)
+    return e, n, u, y, h, f, m_g, v_e, hn
+
+
+@ti.func
+def _wedge_cutting(tools: ti.template(), t, n, v_e, hn):
+    """Tool t's wedge acts while the tool is on, has an edge, and its face moves into the soil."""
+    return tools[t, T_ON] > 0.0 and tools[t, T_WG_ON] > 0.0 and hn > 0.1 and v_e.dot(n) > 1e-6
+
+
+@ti.func
+def _wedge_role(x, r, tools: ti.template()):
+    """A particle's part in the soil wedges (AGX Terrain's aggregate at a cutting edge): WG_IN + 4 t, a grain of tool
+    t's wedge (ahead of its face, behind the failure plane through the edge, under the front surface: it moves with
+    the wedge); WG_LAYER + 4 t, a grain of the layer beyond the plane (it takes the plane's reaction); WG_FREE."""
+    code = WG_FREE
+    for t in ti.static(range(MAX_TOOLS)):
+        if code == WG_FREE and tools[t, T_WG_LIVE] > 0.0:
+            rel = x - vec3(tools[t, T_WG_EW], tools[t, T_WG_EW + 1], tools[t, T_WG_EW + 2])
+            s_f = rel.dot(vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2]))
+            if s_f > -r and ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1],
+                                                tools[t, T_WG_YW + 2]))) < tools[t, T_WG_HW]:
+                low = tools[t, T_WG_EW + 2] - WG_LOW * r
+                s_g = (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1],
+                                                                  tools[t, T_WG_MG + 2]))
+                if s_g < 0.0:
+                    if x[2] > low and x[2] < tools[t, T_WG_TOP]:
+                        code = WG_IN + 4 * t
+                elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
+                    code = WG_LAYER + 4 * t
+    return code
+
+
+@ti.func
+def _wedge_front(x, v, r, tools: ti.template(), stat: ti.template()):
+    """The ground ahead of each cutting wedge, as it was: the highest top among the grains at rest (slower than
+    WG_REST x the wedge) in a band WG_FRONT_R radii deep beyond its failure plane. The grains the wedge pushes
+    (heave) and the spoil move, so they are the earthmoving equation's surcharge, not its wedge."""
+    for t in ti.static(range(MAX_TOOLS)):
+        if tools[t, T_WG_LIVE] > 0.0:
+            rel = x - vec3(tools[t, T_WG_EW], tools[t, T_WG_EW + 1], tools[t, T_WG_EW + 2])
+            s_f = rel.dot(vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2]))
+            if s_f > -r and ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1],
+                                                tools[t, T_WG_YW + 2]))) < tools[t, T_WG_HW]:
+                s_g = (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1],
+                                                                  tools[t, T_WG_MG + 2]))
+                v_w = vec3(tools[t, T_WG_VW], tools[t, T_WG_VW + 1], tools[t, T_WG_VW + 2])
+                if s_g >= 0.0 and s_g < WG_FRONT_R * r and v.dot(v) < WG_REST * WG_REST * v_w.dot(v_w):
+                    ti.atomic_max(stat[S_WG_TOP + t], x[2] + r)
+
+
+@ti.func
+def _wedge_refresh(tools: ti.template(), t):
+    """Tool t's wedge in the world, for the particles' tests (T_WG_LIVE..): after the tool moved or was set."""
+    live = 0.0
+    if tools[t, T_WG_ON] > 0.0:
+        e, n, u, y, h, f, m_g, v_e, hn = _wedge_frame(tools, t)
+        if _wedge_cutting(tools, t, n, v_e, hn):
+            live = 1.0
+        v_w = f * (v_e.dot(n) / f.dot(n))  # along the plane, as fast into the soil as the face
+        for c in ti.static(range(3)):
+            tools[t, T_WG_EW + c] = e[c]
+            tools[t, T_WG_NW + c] = n[c]
+            tools[t, T_WG_YW + c] = y[c]
+            tools[t, T_WG_MG + c] = m_g[c]
+            tools[t, T_WG_VW + c] = v_w[c]
+    tools[t, T_WG_LIVE] = live
+
+
+@ti.func
+def _fee_p(beta, alpha, prm: ti.template(), depth):
+    """The earthmoving equation's push per metre of edge at failure angle beta (HUGE where no wedge is admissible)."""
+    phi = prm[P_WG_PHI]
+    delta = prm[P_WG_DELTA]
+    cot_a = ti.cos(alpha) / ti.sin(alpha)
+    cot_b = ti.cos(beta) / ti.sin(beta)
+    cot_bp = ti.cos(beta + phi) / ti.sin(beta + phi)
+    dd = ti.cos(alpha + delta) + ti.sin(alpha + delta) * cot_bp
+    p = ti.f64(HUGE)
+    if dd > 0.0:
+        p = (prm[P_WG_GAMMA] * depth * depth * (cot_a + cot_b) / 2.0 + prm[P_WG_C] * depth * (1.0 + cot_b * cot_bp)
+             + prm[P_WG_CA] * depth * (1.0 - cot_a * cot_bp)) / dd
+    return p
+
+
+@ti.func
+def _wedge_equilibrium(t, sums, tools: ti.template(), tool_acc: ti.template(), prm: ti.template()):
+    """Tool t's wedge after a substep. sums: what the free grains put on its grains (0-2), what the layer beyond the
+    plane puts on them across it (3-5), their mass (6), the layer's mass (7). The wedge is in equilibrium under its
+    weight, those forces, the face's push (at delta to its normal, with adhesion up the face) and the plane's
+    reaction (at phi to its normal, with cohesion along it): the push goes on the tool, the plane's reaction less
+    what the contacts across it carried on the layer (spread by mass, from the next substep). Then the failure angle
+    that minimises the equation's push at this depth, and the front surface, are kept for the next substep."""
+    e, n, u, y, h, f, m_g, v_e, hn = _wedge_frame(tools, t)
+    acc = vec3(0.0)
+    depth = tools[t, T_WG_TOP] - e[2]
+    alpha = ti.atan2(u[2], -u.dot(h))
+    if _wedge_cutting(tools, t, n, v_e, hn) and depth > 0.0 and sums[6] > 0.0 and alpha > 0.01:
+        phi = prm[P_WG_PHI]
+        delta = prm[P_WG_DELTA]
+        beta = tools[t, T_WG_BETA]
+        width = 2.0 * tools[t, T_WG_HW]
+        adhesion = prm[P_WG_CA] * depth / ti.sin(alpha) * width * u
+        cohesion = prm[P_WG_C] * depth / ti.sin(beta) * width * f
+        a = n * ti.cos(delta) - u * ti.sin(delta)
+        b = -m_g * ti.cos(phi) - f * ti.sin(phi)
+        weight = sums[6] * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
+        rhs = adhesion + cohesion - weight - vec3(sums[0], sums[1], sums[2])
+        z = vec3(0.0, 0.0, 1.0)
+        det = a.dot(h) * b[2] - a[2] * b.dot(h)
+        p = ti.max((rhs.dot(h) * b[2] - rhs[2] * b.dot(h)) / det, 0.0)
+        r_plane = ti.max((a.dot(h) * rhs[2] - a[2] * rhs.dot(h)) / det, 0.0)
+        side = rhs - rhs.dot(h) * h - rhs[2] * z  # along the edge: the face holds it
+        push = p * a - adhesion + side
+        plane = r_plane * b - cohesion
+        origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
+        on_tool = -push
+        moment = (e + u * (depth / (3.0 * ti.sin(alpha))) - origin).cross(on_tool)
+        for c in ti.static(range(3)):
+            tool_acc[t, c] += on_tool[c]
+            tool_acc[t, 3 + c] += moment[c]
+            tools[t, T_WG_PUSH + c] = on_tool[c]
+        if sums[7] > 0.0:
+            acc = -(plane - vec3(sums[3], sums[4], sums[5])) / sums[7]
+        # the failure angle of the equation at this depth and rake: golden section on (0, pi/2)
+        lo = ti.f64(1e-3)
+        hi = ti.f64(0.5 * 3.141592653589793 - 1e-3)
+        for _ in range(48):
+            m1 = hi - 0.6180339887498949 * (hi - lo)
+            m2 = lo + 0.6180339887498949 * (hi - lo)
+            if _fee_p(m1, alpha, prm, depth) < _fee_p(m2, alpha, prm, depth):
+                hi = m2
+            else:
+                lo = m1
+        tools[t, T_WG_BETA] = 0.5 * (lo + hi)
+    for c in ti.static(range(3)):
+        tools[t, T_WG_ACC + c] = acc[c]
+
+
 @ti.func
 def _mark_hot(i, base, block, blk_hot: ti.template(), rev_off: ti.template(), rev_holder: ti.template()):
     """Particle i is awake for the next substep: its block and the blocks holding its other pairs take part in it.
@@ -819,9 +1052,13 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
         lost_mass = ti.f64(0.0)
         lost_count = ti.f64(0.0)
         tool_sum = ti.Matrix.zero(ti.f64, MAX_TOOLS, 6)
+        wedge_sum = ti.Matrix.zero(ti.f64, MAX_TOOLS, WG_SUMS)
         for i in range(first, last):
             if flags[i] == 1:  # (all of 0..n_act are active: a deactivation triggers a rebuild at once)
                 word = surf_id[i, TOOL_BITS]
+                in_wedge = False
+                if ti.static(WEDGES):
+                    in_wedge = (_wedge_role(kin[i, 0], prop[i][0], tools) & 3) == WG_IN
                 if sleep_steps > 0 and (word >> CALM_SHIFT) >= sleep_steps:
                     # asleep: no forces, no integration; wake on a neighbour's request or a tool within r + skin,
                     # integrated again from the next substep (its pairs are evaluated again from then on)
@@ -838,6 +1075,9 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                 woken = woken or sample[0] < reach
                                 clear = ti.min(clear, gap_t)
                         tool_gap[i] = travel + clear
+                    if ti.static(WEDGES):  # a wedge's grains move with it, and the layer beyond it takes its reaction
+                        if not woken:
+                            woken = _wedge_role(kin[i, 0], prop[i][0], tools) != WG_FREE
                     if woken:
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
                         tool_gap[i] = -HUGE  # (the sleeping particle's gap assumed it would not move)
@@ -845,6 +1085,49 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     x_b = kin[i, 0]
                     box_lo = ti.min(box_lo, x_b)
                     box_hi = ti.max(box_hi, x_b)
+                elif in_wedge:
+                    # a wedge's grain moves with the wedge: along the failure plane, at the speed that keeps it on
+                    # the face; what the free grains and, across the plane, the layer put on it go to the wedge's sums
+                    # (the tool's push comes from its equilibrium after the substep: _wedge_equilibrium)
+                    tw = _wedge_role(kin[i, 0], prop[i][0], tools) >> 2
+                    x = kin[i, 0]
+                    m = prop[i][1]
+                    from_free = own[i, 0]
+                    across = own[i, 1]
+                    for q in range(rev_off[i], rev_off[i + 1]):
+                        holder = rev_holder[q]
+                        role_h = _wedge_role(kin[holder, 0], prop[holder][0], tools)
+                        if role_h == WG_LAYER + 4 * tw:
+                            across += ti.cast(pair_out[q, 0], ti.f64)
+                        else:
+                            from_free += ti.cast(pair_out[q, 0], ti.f64)
+                    for c in ti.static(range(3)):
+                        wedge_sum[tw, c] += from_free[c]
+                        wedge_sum[tw, 3 + c] += across[c]
+                    wedge_sum[tw, 6] += m
+                    v = vec3(tools[tw, T_WG_VW], tools[tw, T_WG_VW + 1], tools[tw, T_WG_VW + 2])
+                    x += v * dt
+                    # off the face, which it does not touch (one the edge met under it would rise into the tool), at
+                    # most as fast as the wedge moves (no jump into its neighbours)
+                    n_w = vec3(tools[tw, T_WG_NW], tools[tw, T_WG_NW + 1], tools[tw, T_WG_NW + 2])
+                    s_f = (x - vec3(tools[tw, T_WG_EW], tools[tw, T_WG_EW + 1], tools[tw, T_WG_EW + 2])).dot(n_w)
+                    if s_f < prop[i][0]:
+                        x += ti.min(prop[i][0] - s_f, v.norm() * dt) * n_w
+                    kin[i, 0] = x
+                    kin[i, 1] = v
+                    kin[i, 2] = vec3(0.0)
+                    box_lo = ti.min(box_lo, x)
+                    box_hi = ti.max(box_hi, x)
+                    ref = x_ref[i]
+                    dx = x - vec3(ref[0], ref[1], ref[2])
+                    disp2_max = ti.max(disp2_max, dx.dot(dx))
+                    speed2_max = ti.max(speed2_max, v.dot(v))
+                    tool_gap[i] = -HUGE
+                    if sleep_steps > 0:
+                        surf_id[i, TOOL_BITS] = surf_id[i, TOOL_BITS] & TOOL_MASK  # (awake: calm count 0)
+                        _mark_hot(i, n_frozen, block, blk_hot, rev_off, rev_holder)
+                    else:
+                        blk_hot[blk] = 1
                 else:
                     x = kin[i, 0]
                     v = kin[i, 1]
@@ -859,6 +1142,14 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                         force += ti.cast(pair_out[q, 0], ti.f64)
                         torque += ti.cast(pair_out[q, 1], ti.f64)
                     force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
+                    if ti.static(WEDGES):
+                        role = _wedge_role(x, r, tools)
+                        if (role & 3) == WG_LAYER:  # the wedge's failure plane: its reaction, by mass
+                            tw = role >> 2
+                            force += m * vec3(tools[tw, T_WG_ACC], tools[tw, T_WG_ACC + 1], tools[tw, T_WG_ACC + 2])
+                            wedge_sum[tw, 7] += m
+                        if role == WG_FREE or (role & 3) == WG_LAYER:
+                            _wedge_front(x, v, r, tools, stat)
                     buried = False
                     # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
                     ids = ti.Vector([surf_id[i, 0], surf_id[i, 1], surf_id[i, 2], surf_id[i, 3]])
@@ -1034,6 +1325,10 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
             for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
                 if tool_sum[t, c] != 0.0:
                     ti.atomic_add(tool_acc[t, c], _on_grid(tool_sum[t, c], WRENCH_QUANTUM))
+            for t, c in ti.static(ti.ndrange(MAX_TOOLS if WEDGES else 0, WG_SUMS)):
+                if wedge_sum[t, c] != 0.0:
+                    quantum = WRENCH_QUANTUM if c < 6 else MASS_QUANTUM
+                    ti.atomic_add(stat[S_WG_SUM + WG_SUMS * t + c], _on_grid(wedge_sum[t, c], quantum))
             if lost_count != 0.0:
                 ti.atomic_add(stat[S_LOST_MASS], _on_grid(lost_mass, MASS_QUANTUM))
                 ti.atomic_add(stat[S_LOST_COUNT], lost_count)
@@ -1046,6 +1341,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
             ti.atomic_max(stat[S_SPEED2], speed2_max)
             for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
                 partial[blk, 6 * t + c] = tool_sum[t, c]
+            for t, c in ti.static(ti.ndrange(MAX_TOOLS if WEDGES else 0, WG_SUMS)):
+                partial[blk, PART_WG + WG_SUMS * t + c] = wedge_sum[t, c]
             partial[blk, PART_LOST_MASS] = lost_mass
             partial[blk, PART_LOST_COUNT] = lost_count
             partial[blk, PART_NONFINITE] = nonfinite
@@ -1056,16 +1353,37 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
     ti.loop_config(serialize=True)
     for _ in range(1):
         stat[S_ACTIVE] = ti.max(stat[S_ACTIVE], ti.cast(blk_list[0] * block, ti.f64))
-        acc = ti.Vector.zero(ti.f64, PART_WIDTH)
+        acc = ti.Vector.zero(ti.f64, PART_BASE)
         for blk in range(n_blocks):
             if blk_active[blk] != 0:  # (a skipped block's row is stale; it would have added zeros)
-                for c in ti.static(range(PART_WIDTH)):
+                for c in ti.static(range(PART_BASE)):
                     acc[c] += partial[blk, c]
         for t, c in ti.static(ti.ndrange(MAX_TOOLS, 6)):
             tool_acc[t, c] += acc[6 * t + c]
         stat[S_LOST_MASS] += acc[PART_LOST_MASS]
         stat[S_LOST_COUNT] += acc[PART_LOST_COUNT]
         stat[S_NONFINITE] += acc[PART_NONFINITE]
+        if ti.static(WEDGES) and running:
+            for t in ti.static(range(MAX_TOOLS)):
+                if tools[t, T_WG_ON] > 0.0:
+                    sums = ti.Vector.zero(ti.f64, WG_SUMS)
+                    if ti.static(PER_PARTICLE):
+                        for c in ti.static(range(WG_SUMS)):
+                            sums[c] = stat[S_WG_SUM + WG_SUMS * t + c]
+                            stat[S_WG_SUM + WG_SUMS * t + c] = 0.0
+                    else:
+                        for blk in range(n_blocks):
+                            if blk_active[blk] != 0:
+                                for c in ti.static(range(WG_SUMS)):
+                                    sums[c] += partial[blk, PART_WG + WG_SUMS * t + c]
+                    _wedge_equilibrium(t, sums, tools, tool_acc, prm)
+                    # the front surface (_wedge_front); kept while no grain at rest shows it
+                    top = stat[S_WG_TOP + t]
+                    if tools[t, T_WG_LIVE] == 0.0:
+                        tools[t, T_WG_TOP] = -HUGE
+                    elif top > -UNKNOWN_TOP:
+                        tools[t, T_WG_TOP] = top
+                    stat[S_WG_TOP + t] = -HUGE
     # tools move kinematically: p += v dt, R <- Rot(w dt) R (serial: a parallel loop over four rows would cost a
     # thread-pool round trip per substep, which small soils feel)
     n_tools = MAX_TOOLS
@@ -1088,6 +1406,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
             for a in ti.static(range(3)):
                 for b in ti.static(range(3)):
                     tools[t, T_ROT + 3 * a + b] = rot[a, b]
+            if ti.static(WEDGES):
+                _wedge_refresh(tools, t)
     if running:
         stat[S_DONE] += 1.0
         if stat[S_DISP2] > 0.25 * prm[P_SKIN] * prm[P_SKIN]:
@@ -1120,8 +1440,8 @@ def _variant(fn, decorator, **names):
     return decorator(copy)
 
 
-def _substep_kernel(serial: bool, per_particle: bool = False):
-    flags = dict(SERIAL_LOOPS=serial, PER_PARTICLE=per_particle)
+def _substep_kernel(serial: bool, per_particle: bool = False, wedges: bool = False):
+    flags = dict(SERIAL_LOOPS=serial, PER_PARTICLE=per_particle, WEDGES=wedges)
     funcs = {name: _variant(globals()[name], ti.func, **flags) for name in ("_mark_blocks", "_pair_forces", "_step")}
     return _variant(_substep, ti.kernel, **flags, **funcs)
 
@@ -1131,6 +1451,10 @@ substep_serial = _substep_kernel(True)  # every particle loop in the calling thr
 # a GPU's layout: one iteration per particle of the listed blocks in step() too, its sums by atomics of terms on a
 # grid (the same bits in any order, not the block sums' bits)
 substep_per_particle = _substep_kernel(False, per_particle=True)
+# the same with the soil wedges (a tool has a cutting edge)
+substep_wedges = _substep_kernel(False, wedges=True)
+substep_serial_wedges = _substep_kernel(True, wedges=True)
+substep_per_particle_wedges = _substep_kernel(False, per_particle=True, wedges=True)
 
 
 # ----------------------------------------------------------------------------------------------- neighbour build
@@ -1806,6 +2130,7 @@ def begin_chunk(first: ti.i32, upload: ti.i32, tools_in: F64_2, tools: F64_2, to
                     for c in range(T_WIDTH):
                         tools[t, c] = tools_in[t, c]
                     tools[t, T_TRAVEL] = travel
+                    _wedge_refresh(tools, t)
             for t, c in ti.ndrange(MAX_TOOLS, 6):
                 tool_acc[t, c] = 0.0
             stat[S_SPEED2] = 0.0

@@ -30,7 +30,7 @@ from .errors import DivergenceError, UserError
 from .geometry import quat_to_matrix
 from .kernels import dem
 from .paths import cache_dir
-from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step
+from .soil import GRAVITY, SoilMicro, check_dt, damping_for_step, tool_friction_angle
 from .tool_sdf import tool_sdf
 
 MORTON_TABLE_PER_PARTICLE = 16
@@ -147,7 +147,10 @@ PER_PARTICLE_ARCHS = ("cuda",)  # backends whose step loop gives each particle a
 
 
 def _substep_kernel(layout: str):
-    return {"block": dem.substep, "serial": dem.substep_serial, "particle": dem.substep_per_particle}[layout]
+    base, _, wedges = layout.partition("+")  # "+wedges": the variant with the soil wedges (a tool has an edge)
+    suffix = "_wedges" if wedges else ""
+    return getattr(dem, {"block": "substep", "serial": "substep_serial", "particle": "substep_per_particle"}[base]
+                   + suffix)
 
 
 def _of_this_runtime(cache: dict) -> dict:
@@ -271,8 +274,9 @@ class DemSoil:
     def __init__(self, micro: SoilMicro, *, domain_min, domain_max, beds: list[tuple[tuple, tuple]],
                  seed: int = 0, dt: float | None = None, max_speed: float = 30.0, settle_time: float = 1.0,
                  use_cache: bool = True, gravity=(0.0, 0.0, -GRAVITY), skin: float | None = None,
-                 on_settle=None, sleep: bool = False, surface=None):
+                 on_settle=None, sleep: bool = False, surface=None, bulk=None):
         self.micro = micro
+        self.bulk = bulk  # SoilBulk: the soil wedges' strength (set_cutting_edge); None: no wedges
         self.surface = surface  # (x, y, z[ix, iy]): fill beds to this surface instead of level (soil.terrain)
         self.sleep = bool(sleep)
         # skip whole blocks of sleeping particles (mark_blocks), keep the lists of still neighbourhoods at a
@@ -314,7 +318,7 @@ class DemSoil:
         self._blk_hot = None
         self._set_prm(self._parameters())
         self._stat = ti.ndarray(ti.f64, dem.N_STAT)
-        self._stat.fill(0.0)
+        self._reset_stat()
         self._tools = ti.ndarray(ti.f64, (dem.MAX_TOOLS, dem.T_WIDTH))
         self._tool_acc = ti.ndarray(ti.f64, (dem.MAX_TOOLS, 6))
         self._sdf = ti.ndarray(dem.vec4f, 1)
@@ -351,7 +355,8 @@ class DemSoil:
         self = cls(soil.params, domain_min=soil.domain_min, domain_max=soil.domain_max,
                    beds=[b for b in soil.beds] if build_beds else [], seed=soil.seed, dt=soil.dt,
                    max_speed=soil.max_speed, settle_time=soil.settle_time, on_settle=on_settle,
-                   sleep=getattr(soil, "sleep", False), surface=getattr(soil, "surface", None))
+                   sleep=getattr(soil, "sleep", False), surface=getattr(soil, "surface", None),
+                   bulk=getattr(soil, "bulk", None))
         if not build_beds:  # the kernels still need the pits as static geometry
             self.beds = _check_beds(list(soil.beds), self.domain_min, self.domain_max, self.r_max)
             self._set_prm(self._parameters())
@@ -511,6 +516,13 @@ class DemSoil:
             prm[dem.P_SLEEP_V2] = (SLEEP_SPEED * math.sqrt(GRAVITY * m.radius)) ** 2
         for k, (b_min, b_max) in enumerate(self.beds):
             prm[dem.P_PITS + 6 * k:dem.P_PITS + 6 * k + 6] = np.concatenate([b_min, b_max])
+        if self.bulk is not None:  # the soil wedges' strength: the bulk soil's, as the earthmoving equation takes it
+            b = self.bulk
+            prm[dem.P_WG_PHI] = b.friction_angle
+            prm[dem.P_WG_DELTA] = tool_friction_angle(b)
+            prm[dem.P_WG_C] = b.cohesion
+            prm[dem.P_WG_CA] = b.adhesion
+            prm[dem.P_WG_GAMMA] = b.density * float(np.linalg.norm(self.gravity))
         return prm
 
     def _allocate(self, n: int) -> None:
@@ -589,7 +601,7 @@ class DemSoil:
             raise ValueError(f"radii must lie in (0, {self.r_max:g}] (the soil's largest radius)")
         self._allocate(n)
         if n == 0:
-            self._stat.fill(0.0)
+            self._reset_stat()
             return
         mass = self.micro.solid_density * 4.0 / 3.0 * math.pi * rad ** 3
         prop = np.stack([rad, mass, 1.0 / mass, mass ** 0.25], axis=1)
@@ -597,7 +609,7 @@ class DemSoil:
         self._prop.from_numpy(prop)
         self._flags.fill(1)
         dem.reset_contacts(n, self._nbr_off, self._surf_id, self._surf_h)
-        self._stat.fill(0.0)
+        self._reset_stat()
         self._rebuild()
 
     def add_particles(self, positions, velocities=None, radii=None) -> None:
@@ -965,7 +977,7 @@ class DemSoil:
         kin = self._kin.to_numpy()
         kin[:, 1:] = 0.0
         self._kin.from_numpy(kin)
-        self._stat.fill(0.0)
+        self._reset_stat()
         self.time = 0.0
         self._rebuild()  # sorted for the final positions: a reload (which rebuilds) gets the same order
         self._set_prm(self._parameters())
@@ -1101,7 +1113,7 @@ class DemSoil:
             full[:len(value)] = value
             target.from_numpy(full)
         self._flags.fill(1)
-        self._stat.fill(0.0)
+        self._reset_stat()
         self._forget_partition()  # (a bed settled in this process digs as one loaded from the cache)
         self._rebuild()
 
@@ -1141,6 +1153,48 @@ class DemSoil:
         row[dem.T_BS + 3] = float(np.linalg.norm(half)) * (1.0 + 1e-9) + 1e-9
         self._tools_dirty = True
         return i
+
+    def set_cutting_edge(self, i: int, centre, face_normal, face_up, width: float) -> None:
+        """Give tool i a cutting edge (link frame): its centre, the face's normal into the soil it cuts, the direction
+        up the face away from the edge, and the edge's width. While the face moves into the soil, the grains between
+        the face and the failure plane through the edge (at the earthmoving equation's angle) move with the tool as
+        one wedge, and the tool feels that wedge's equilibrium with the bulk soil's strength (AGX Terrain's soil
+        aggregate) instead of the grains' contacts: forces of the earthmoving equation at any grain size."""
+        if not 0 <= i < len(self._tool_names):
+            raise IndexError(f"no tool {i}; {len(self._tool_names)} registered")
+        name = self._tool_names[i]
+        if self.bulk is None:
+            raise UserError(f"tools.{name}.cutting_edge: this soil has no bulk properties to give the wedge")
+        centre, normal, up = (np.asarray(v, dtype=np.float64).reshape(3) for v in (centre, face_normal, face_up))
+        for key, v in (("centre", centre), ("face_normal", normal), ("face_up", up)):
+            if not np.all(np.isfinite(v)):
+                raise UserError(f"tools.{name}.cutting_edge.{key}: expected three finite numbers, got {v.tolist()}")
+        for key, v in (("face_normal", normal), ("face_up", up)):
+            if not np.linalg.norm(v) > 1e-9:
+                raise UserError(f"tools.{name}.cutting_edge.{key}: expected a direction, got the zero vector")
+        normal = normal / np.linalg.norm(normal)
+        up = up - up.dot(normal) * normal
+        if not np.linalg.norm(up) > 1e-6:
+            raise UserError(f"tools.{name}.cutting_edge.face_up: must not be parallel to face_normal")
+        up /= np.linalg.norm(up)
+        if not (math.isfinite(width) and width > 0.0):
+            raise UserError(f"tools.{name}.cutting_edge.width: expected a width in m > 0, got {width!r}")
+        row = self._tools_host[i]
+        row[dem.T_WG_ON] = 1.0
+        row[dem.T_WG_E:dem.T_WG_E + 3] = centre
+        row[dem.T_WG_N:dem.T_WG_N + 3] = normal
+        row[dem.T_WG_U:dem.T_WG_U + 3] = up
+        row[dem.T_WG_HW] = 0.5 * float(width)
+        row[dem.T_WG_BETA] = 0.25 * math.pi - 0.5 * self.bulk.friction_angle  # (Rankine's; the kernels refine it)
+        row[dem.T_WG_TOP] = -dem.HUGE
+        row[dem.T_WG_ACC:dem.T_WG_ACC + 3] = 0.0
+        self._tools_dirty = True
+
+    def _reset_stat(self) -> None:
+        """Zero the kernels' diagnostics; the wedges' front surfaces are unknown until a substep finds them."""
+        stat = np.zeros(dem.N_STAT)
+        stat[dem.S_WG_TOP:dem.S_WG_TOP + dem.MAX_TOOLS] = -dem.HUGE
+        self._stat.from_numpy(stat)
 
     def clear_above(self, z: float) -> None:
         """From now on, remove every particle whose centre rises above height z and book its mass as out of the
@@ -1245,7 +1299,8 @@ class DemSoil:
             names = tuple(f"{name}_parallel" if name in ("sort_by_bucket", "build_reverse") else name for name in names)
         kernels = [getattr(dem, name) for name in names]
         if self._serial_cpu:  # (a bed that wakes past SERIAL_BELOW switches to the threaded substep mid-run)
-            kernels += [_substep_kernel("serial"), _substep_kernel("block")]
+            wedges = "+wedges" if np.any(self._tools_host[:, dem.T_WG_ON] > 0.0) else ""
+            kernels += [_substep_kernel("serial" + wedges), _substep_kernel("block" + wedges)]
         precompile(*kernels)
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
         for which in ("sort", "sort_keep", "lists"):
@@ -1267,9 +1322,10 @@ class DemSoil:
     def _layout(self) -> str:
         """The substep kernel for the next run of substeps: per particle on a GPU; on a CPU threaded, or serial
         while the last substep listed few particle slots (SERIAL_BELOW)."""
+        wedges = "+wedges" if np.any(self._tools_host[:, dem.T_WG_ON] > 0.0) else ""
         if self.per_particle:
-            return "particle"
-        return "serial" if self._serial_cpu and self._active_slots < SERIAL_BELOW else "block"
+            return "particle" + wedges
+        return ("serial" if self._serial_cpu and self._active_slots < SERIAL_BELOW else "block") + wedges
 
     def advance(self, duration: float) -> np.ndarray:
         """Advance by `duration` in n = ceil(duration / dt) equal substeps, tools moving kinematically.

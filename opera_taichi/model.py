@@ -50,6 +50,7 @@ class KinematicTool:
     velocity: np.ndarray        # (3,) m/s
     start_time: float           # s
     stop_time: float | None     # s; None = never stops
+    cutting_edge: object = None  # scene.CuttingEdgeConfig or None
 
     def pose_twist(self, t: float):
         """Position, quaternion (x, y, z, w), linear and angular velocity of the tool origin at time t."""
@@ -110,6 +111,7 @@ class ToolBinding:
     owner: str | None         # machine name; None for a standalone tool
     link: str | None          # the machine link it is bound to
     mesh: "trimesh.Trimesh"   # collision mesh in the link (tool) frame
+    cutting_edge: object = None  # scene.CuttingEdgeConfig: the soil wedge at its edge; None: grain by grain
 
 
 @dataclass(frozen=True)
@@ -160,7 +162,7 @@ def _build_tools(scene) -> tuple[KinematicTool, ...]:
                 raise UserError(f"tools.{i}.mesh: {cfg.mesh} holds no triangles")
         tools.append(KinematicTool(cfg.name, mesh, np.asarray(cfg.start, float), rpy_to_quat(cfg.rpy),
                                    np.asarray(cfg.velocity, float), float(cfg.start_time),
-                                   None if cfg.stop_time is None else float(cfg.stop_time)))
+                                   None if cfg.stop_time is None else float(cfg.stop_time), cfg.cutting_edge))
     return tuple(tools)
 
 
@@ -333,7 +335,7 @@ def _bindings(machines, tools) -> tuple[ToolBinding, ...]:
             name = link if len(machines) == 1 else f"{m.name}.{link}"
             rows.append(ToolBinding(name, m.name, link, m.description.collision_meshes[link]))
     for tool in tools:
-        rows.append(ToolBinding(tool.name, None, None, tool.mesh))
+        rows.append(ToolBinding(tool.name, None, None, tool.mesh, tool.cutting_edge))
     names = [r.name for r in rows]
     for name in names:
         if names.count(name) > 1:

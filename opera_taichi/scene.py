@@ -486,6 +486,16 @@ class MachineConfig(_Model):
         return self
 
 
+class CuttingEdgeConfig(_Model):
+    """A tool's cutting edge in the tool's frame: the soil it cuts pushes back as one wedge (AGX's aggregate)."""
+
+    centre: Vec3M = Field(description="Middle of the edge.")
+    face_normal: _vec3("tool frame") = Field(description="Normal of the face that pushes the soil, pointing into it "
+                                                         "(any length).")
+    face_up: _vec3("tool frame") = Field(description="Direction up the face, away from the edge (any length).")
+    width: _num("m", gt=0) = Field(description="Length of the edge.")
+
+
 class ToolConfig(_Model):
     """A standalone rigid tool moved along a straight line at constant velocity (kinematic)."""
 
@@ -501,6 +511,9 @@ class ToolConfig(_Model):
     velocity: _vec3("m/s", "[vx, vy, vz]") = Field((0.0, 0.0, 0.0), description="Constant velocity.")
     start_time: NonNegSeconds = Field(0.0, description="Before it the tool waits at `start`.")
     stop_time: Optional[NonNegSeconds] = Field(None, description="After it the tool stops; null = never.")
+    cutting_edge: Optional[CuttingEdgeConfig] = Field(
+        None, description="The tool's cutting edge (DEM soil): the soil it cuts pushes back as the earthmoving "
+                          "equation's wedge instead of grain by grain; null = grain by grain.")
 
     @model_validator(mode="after")
     def _check(self):

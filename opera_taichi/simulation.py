@@ -69,7 +69,13 @@ class Simulation:
             for text in getattr(self.soil, "warnings", ()):
                 self._warn(text)
             for binding in model.bindings:
-                self.soil.add_tool(binding.name, binding.mesh)
+                index = self.soil.add_tool(binding.name, binding.mesh)
+                edge = binding.cutting_edge
+                if edge is not None:
+                    if not hasattr(self.soil, "set_cutting_edge"):
+                        raise UserError(f"tools.{binding.name}.cutting_edge: the {model.soil.solver} soil has no "
+                                        f"soil wedge (a DEM soil has)")
+                    self.soil.set_cutting_edge(index, edge.centre, edge.face_normal, edge.face_up, edge.width)
             self.tool_wrench = np.zeros((len(model.bindings), 6))
             # (machine, link) of each machine-bound tool, in soil tool order; standalone tools follow
             self._bound = [(self.machines[b.owner], b.link) for b in model.bindings if b.owner is not None]

@@ -279,6 +279,11 @@ def contact_duration(k: float, m_eff: float, damping: float) -> float:
     return math.pi / (omega0 * math.sqrt(1.0 - zeta * zeta))
 
 
+def tool_friction_angle(bulk: SoilBulk) -> float:
+    """The soil-tool friction angle delta, rad: the given one, else 2/3 of the internal friction angle."""
+    return 2.0 / 3.0 * bulk.friction_angle if bulk.tool_friction_angle is None else bulk.tool_friction_angle
+
+
 def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     """Map bulk properties to DEM contact parameters.
 
@@ -317,9 +322,7 @@ def bulk_to_micro(bulk: SoilBulk, bed_depth: float = 1.0) -> SoilMicro:
     mu_r = bulk.rolling_resistance
     if mu_r is None:
         mu_r = calibrated_rolling_resistance(bulk.friction_angle)
-    delta = bulk.tool_friction_angle
-    if delta is None:
-        delta = 2.0 / 3.0 * bulk.friction_angle
+    delta = tool_friction_angle(bulk)
     cohesion_force = 0.0
     cohesion_range = 0.0
     if bulk.cohesion > 0.0:

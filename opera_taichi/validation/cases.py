@@ -74,6 +74,9 @@ ROLLING = Param(None, "", lambda v: 0.0 <= v <= 1.0, "between 0 and 1 (default: 
 SEED = Param(0.0, "", lambda v: v == int(v) and 0 <= v < 2 ** 32, "a whole number 0 to 2^32 - 1 (sim.seed: the "
              "bed's packing)")
 
+WEDGE = Param(0.0, "", lambda v: v in (0.0, 1.0),
+              "0 or 1 (1: the tool's cutting edge pushes the soil as the earthmoving equation's wedge, tools.cutting_edge)")
+
 PARAMS: dict[str, dict[str, Param]] = {
     "blade_cut": {
         "depth": Param(0.3, "m"),
@@ -87,10 +90,10 @@ PARAMS: dict[str, dict[str, Param]] = {
         "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)), "density": Param(1700.0, "kg/m3"),
         "cohesion": Param(0.0, "Pa", lambda v: v >= 0, ">= 0"),
         "adhesion": Param(0.0, "Pa", lambda v: v >= 0, ">= 0"),
-        "speed": Param(0.1, "m/s"), "preset": PRESET, "rolling_resistance": ROLLING},
+        "speed": Param(0.1, "m/s"), "preset": PRESET, "rolling_resistance": ROLLING, "wedge": WEDGE},
     "passive_wall": {"height": Param(0.3, "m"), "friction_deg": Param(35.0, "deg", *_angle(5.0, 60.0)),
                      "density": Param(1700.0, "kg/m3"), "preset": PRESET, "rolling_resistance": ROLLING,
-                     "seed": SEED},
+                     "seed": SEED, "wedge": WEDGE},
     "column_collapse": {"aspect_ratio": Param(1.0, "", lambda v: 0.1 <= v <= 8, "between 0.1 and 8"),
                         "length": Param(0.4, "m"), "preset": PRESET, "rolling_resistance": ROLLING,
                         "seed": SEED},
@@ -220,6 +223,14 @@ def _settle_time(depth: float) -> float:
     return max(1.0, 5.0 * math.sqrt(2.0 * 1.2 * depth / 9.81))
 
 
+def _edge(p: dict, centre, width: float) -> dict:
+    """The tool's cutting edge when the case asks for the soil wedge (--param wedge=1): face along +x, up along +z."""
+    if not p.get("wedge"):
+        return {}
+    return {"cutting_edge": {"centre": [float(v) for v in centre], "face_normal": [1.0, 0.0, 0.0],
+                             "face_up": [0.0, 0.0, 1.0], "width": float(width)}}
+
+
 def blade_mesh(thickness: float, width: float, length: float) -> trimesh.Trimesh:
     """Flat blade in its own frame (x: face normal, toward the soil; y: width; z: along the blade, centred), its
     cutting edge sharpened: the back face ends BLADE_BEVEL thicknesses above the edge, so the bevel behind the
@@ -321,7 +332,8 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
                 "soil.settle_time": _settle_time(-floor),
                 "soil.clear_above": BLADE_CLEAR_ABOVE * R,
                 "tools": [{"name": "blade", "mesh": mesh_file, "start": centre.tolist(),
-                           "rpy": [0.0, alpha - math.pi / 2, 0.0], "velocity": [p["speed"], 0.0, 0.0]}],
+                           "rpy": [0.0, alpha - math.pi / 2, 0.0], "velocity": [p["speed"], 0.0, 0.0],
+                           **_edge(p, (t / 2, 0.0, -length / 2), w)}],
                 "sim.duration": travel / p["speed"]}
         geo = dict(radius=R, travel=travel, window=(d, travel), width=w)
     elif case == "passive_wall":
@@ -341,7 +353,7 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
                 "soil.domain": _box((-t - 0.1, -half_y, -bed_depth - 0.05), (lx + 0.1, half_y, wall_h + 1.0)),
                 "soil.settle_time": _settle_time(bed_depth),
                 "tools": [{"name": "wall", "box": [t, 2 * half_y + 4 * R, wall_h], "start": centre,
-                           "velocity": [WALL_SPEED, 0.0, 0.0]}],
+                           "velocity": [WALL_SPEED, 0.0, 0.0], **_edge(p, (t / 2, 0.0, -wall_h / 2), 2 * half_y)}],
                 "sim.duration": (travel + RELEASE_GAP * R) / WALL_SPEED}
         if p["seed"]:  # the scene's own seed (0) otherwise: kept runs stay the same runs
             soil["sim.seed"] = int(p["seed"])

@@ -339,28 +339,44 @@ from the version in the header. The knobs, in the order to tune them:
    rolling resistance that the blade's steady cut must lose, so no law that treats a tool's grains alike passes
    both at 4 across; a wedge whose strength is the equation's (AGX Terrain's aggregate) is the route left that
    keeps real time, and it would make the blade gates a check of that wedge, not of the grains.
-   **A first soil wedge (AGX Terrain's aggregate, reduced to a kinematic wedge) passes the blade at 4 and 8 across,
-   and the wall reads 1.23 x Rankine (2026-11-27; a scratch copy kept as `docs/experiments/soil_wedge_prototype.patch`,
-   one run each on seed 0, `WEDGE_PROTO=1 validate-physics blade_cut|passive_wall --resolution 4|8`).** The grains
-   ahead of a moving tool's face, above its edge and behind the failure plane through the edge (at the FEE's beta)
-   move with the wedge: along the plane, at the speed that keeps them on the face, neither integrated nor touching the
-   tool. What the free grains above put on them is the surcharge; their weight is their mass. The wedge's equilibrium
-   (the face's push at delta with adhesion along it, the plane's reaction at phi with cohesion along it) gives the
-   push on the tool, and the plane's reaction goes to the grains beyond it: the normal contact across the plane, the
-   rest spread by mass over a layer 2.5 r deep. Three fixes made it run the whole window. The plane starts a grain
-   radius under the edge (from the edge, the grains the edge meets piled up under it: 0.6 x more draft, rising). Grains
-   within 0.9 r of the face stay resolved (else they rise into the blade and burst out at the top). The contacts
-   across the plane keep their normal force (else wedge and ground interpenetrate, and the overlaps burst as grains
-   leave the wedge). Draft / FEE: a90 1.07 x and a60 delta20 1.12 x at 4 across (1,451 grains), a90 0.97 x at 8
-   across (5,879 grains); the wall's early peak 1.23 x Rankine at 4 across H (its gate: within 20%). But the push
-   follows the wedge's counted grain mass: 80-100 kg at 4 across, where the equation's wedge holds 88 kg from the
-   edge and 111 kg from a radius under it, and 76-86% of the latter at 8 across. So the ratio follows how many grains
-   the region holds, not the soil's strength, and the wall's peak catches the mass's high moments. Left before it is
-   the product: the wedge's weight from the bulk density over the surface the heightmap gives (AGX's occupancy)
-   rather than the grains counted; the cut depth, rake and plane of motion of any tool from its pose and the live
-   terrain, the bucket's edge and floor among them; deterministic block sums instead of atomics; sleeping grains by
-   the plane; the wedge's momentum; a scene key; and the tests (Newton's third law through the plane, the mass, a
-   tool at rest, the plane-strain limit).
+   **The soil wedge (AGX Terrain's aggregate at a cutting edge) passes the blade and the wall at 4 and 8 across:
+   a tool with `cutting_edge` (docs/scene_reference.md; `validate-physics blade_cut|passive_wall --param wedge=1`).**
+   While the tool's face moves into the soil, the grains ahead of the face, behind the failure plane through the edge
+   (at the angle that minimises the earthmoving equation's push for the face's rake and the cut's depth, found in
+   the kernels each substep) and under the ground ahead move with the wedge: along the plane, as fast into the soil
+   as the face, neither integrated nor touching the tool. The ground ahead is the highest grain at rest in a band 8
+   radii beyond the plane (the heave the wedge pushes and the spoil move: they are the equation's surcharge, not its
+   wedge; the highest grain of all let the wedge swell with the heave and read a60 delta20 1.36 x). The wedge's
+   equilibrium under its grains' weight, what the free grains above put on it, the face's push (at delta to its
+   normal, adhesion up the face) and the plane's reaction (at phi, cohesion along it) gives the push on the tool; the
+   plane's reaction goes to a layer 2.5 radii deep beyond it, by mass, less what the normal contacts across the plane
+   carried (they keep the two sides apart; across the plane a pair has no friction, rolling resistance or cohesion).
+   The plane starts a grain radius under the edge (from the edge, the grains the edge met piled up under it: 0.6 x
+   more draft, rising), and a wedge grain the edge met under it moves off the face at the wedge's speed (left where
+   it was it rose into the blade and burst out at the top; pushed off at once, its neighbours burst). The sums are
+   block sums on a CPU and quantised atomics on a GPU: the same bits run to run. One run each on seed 0 (a 2-vCPU
+   AMD host; `validate-physics blade_cut|passive_wall --resolution N --param wedge=1`):
+
+   | case | grains across | particles | with the wedge | the mapping alone |
+   |---|---|---|---|---|
+   | blade a90 d0.3 | 3 | 774 | 1.21 | 2.16 |
+   | blade a90 d0.3 | 4 | 1,451 | 1.15 | 1.79 |
+   | blade a60 delta20 d0.3 | 4 | 1,453 | 1.22 | 1.89 |
+   | blade a90 d0.3 | 6 | 3,310 | 1.01 | 1.60 |
+   | blade a90 d0.3 | 8 | 5,879 | 0.97 | 1.36 |
+   | blade a60 delta20 d0.3 | 8 | 5,892 | 1.01 | 1.52 |
+   | draft ~ d^2 (d 0.3 / 0.2, a90) | 4 | 1,442 (d 0.2) | 2.267 against 2.25 (+0.8%) | 2.09 (-7.3%) |
+   | passive wall H 0.3, early peak / Rankine | 4 across H | 760-785 | 1.22 / 1.10 / 1.22 (seeds 0-2; mean 1.18) | 0.85 / 0.95 / 1.08 |
+
+   Every blade and wall gate of the issue passes with the wedge (within 25% of the FEE at 4 across, 15% at 8, d^2
+   within 10%, the wall's mean within 20%), at the speed of the grains alone (a90 at 4 across in 19.5 s against 18.3
+   s). On an H200 (`--arch cuda`, its own bed) a90 read 1.115 x and a60 delta20 1.107 x at 4 across, the same bits
+   twice. What it is not yet: the push follows the grains the wedge holds (80-110 kg at 4 across, where the
+   equation's wedge holds 88 kg from the edge), so single runs spread by about 10%; the wall sits at the top of its
+   band; the wedge acts on standalone tools only, not yet on a machine's bucket (its edge and floor in the machine
+   description), so the main job's forces are still the grains'; and grains asleep beyond the tool's reach do not
+   wake for the wedge. The first version was measured in a scratch copy on the same day (a90 1.07 x, a60 delta20
+   1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 / 1.22 x).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
