@@ -1165,6 +1165,9 @@ class DemSoil:
         name = self._tool_names[i]
         if self.bulk is None:
             raise UserError(f"tools.{name}.cutting_edge: this soil has no bulk properties to give the wedge")
+        if self.sleep:  # (the blocks a substep lists are those near a tool's grid: the wedge reaches beyond it)
+            raise UserError(f"tools.{name}.cutting_edge: not with soil.sleep yet (the grains of the wedge and of the "
+                            f"ground ahead of it beyond the tool's reach would stay asleep); set soil.sleep: false")
         centre, normal, up = (np.asarray(v, dtype=np.float64).reshape(3) for v in (centre, face_normal, face_up))
         for key, v in (("centre", centre), ("face_normal", normal), ("face_up", up)):
             if not np.all(np.isfinite(v)):

@@ -91,18 +91,19 @@ def test_a_resumed_wedge_goes_on_bit_for_bit():
     assert np.array_equal(_run(again, 200), ahead)
 
 
-@pytest.mark.parametrize("edge, words", [
-    ("{centre: [0, 0, -0.4], face_normal: [0, 0, 0], face_up: [0, 0, 1], width: 1.0}",
+GOOD = "{centre: [0, 0, -0.4], face_normal: [-1, 0, 0], face_up: [0, 0, 1], width: 1.0}"
+
+
+@pytest.mark.parametrize("edge, extra, words", [
+    (GOOD.replace("face_normal: [-1, 0, 0]", "face_normal: [0, 0, 0]"), [],
      ["tools.blade.cutting_edge.face_normal", "zero vector"]),
-    ("{centre: [0, 0, -0.4], face_normal: [-1, 0, 0], face_up: [2, 0, 0], width: 1.0}",
-     ["tools.blade.cutting_edge.face_up", "parallel"]),
-    ("{centre: [0, 0, -0.4], face_normal: [-1, 0, 0], face_up: [0, 0, 1], width: -1}",
-     ["tools.0.cutting_edge.width", "> 0"]),
-    ("{centre: [0, 0, -0.4], face_normal: [-1, 0, 0], face_up: [0, 0, 1]}",
-     ["tools.0.cutting_edge.width"]),
-], ids=["zero normal", "up along the normal", "negative width", "no width"])
-def test_a_bad_cutting_edge_is_one_line_and_exit_2(edge, words, capsys, tmp_path):
-    sets = [a for s in COARSE + [f"tools.0.cutting_edge={edge}"] for a in ("--set", s)]
+    (GOOD.replace("face_up: [0, 0, 1]", "face_up: [2, 0, 0]"), [], ["tools.blade.cutting_edge.face_up", "parallel"]),
+    (GOOD.replace("width: 1.0", "width: -1"), [], ["tools.0.cutting_edge.width", "> 0"]),
+    (GOOD.replace(", width: 1.0", ""), [], ["tools.0.cutting_edge.width"]),
+    (GOOD, ["soil.sleep=true"], ["tools.blade.cutting_edge", "soil.sleep"]),
+], ids=["zero normal", "up along the normal", "negative width", "no width", "on a sleeping soil"])
+def test_a_bad_cutting_edge_is_one_line_and_exit_2(edge, extra, words, capsys, tmp_path):
+    sets = [a for s in COARSE + [f"tools.0.cutting_edge={edge}", *extra] for a in ("--set", s)]
     rc = cli.main(["run", str(SCENE), "--out", str(tmp_path / "run"), "--quiet", *sets])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
