@@ -213,7 +213,7 @@ T_WG_VW = 61
 T_WG_PUSH = 64     # the force the wedge put on the tool in the last substep (world; part of tool_acc)
 T_WIDTH = 67
 # wedge roles of a particle (_wedge_role): kind in the low two bits, the tool above them
-WG_FREE, WG_IN, WG_LAYER = 0, 1, 2
+WG_FREE, WG_IN, WG_LAYER, WG_SIDE = 0, 1, 2, 3
 WG_LOW = 1.0       # the failure plane starts this many grain radii under the edge: the grains the edge meets rise
 WG_LAYER_R = 2.5   # radii: the layer beyond the plane that carries its reaction
 UNKNOWN_TOP = 1e6  # m: a front surface below -UNKNOWN_TOP is not known yet (-HUGE)
@@ -376,12 +376,15 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
         for e in range(nbr_off[i], nbr_off[i + 1]):
             j = nbr_j[e]
             together = False  # both in a wedge: no force
-            plane = False     # a wedge's grain and one of the layer beyond its failure plane: the normal push only
+            plane = False     # a wedge's grain and one beyond its failure plane or beside it: the normal push only
+            across = False    # beyond the failure plane: its reaction
             if ti.static(WEDGES) and role_i != WG_FREE:
                 role_j = _wedge_role(kin[j, 0], prop[j][0], tools)
                 if role_j != WG_FREE:
                     together = (role_i & 3) == WG_IN and (role_j & 3) == WG_IN
-                    plane = (role_i >> 2) == (role_j >> 2) and (role_i & 3) != (role_j & 3)
+                    one_in = ((role_i & 3) == WG_IN) != ((role_j & 3) == WG_IN)
+                    plane = one_in and (role_i >> 2) == (role_j >> 2)
+                    across = plane and ((role_i & 3) == WG_LAYER or (role_j & 3) == WG_LAYER)
             if sleep_steps > 0:
                 asleep_j = (surf_id[j, TOOL_BITS] >> CALM_SHIFT) >= sleep_steps
                 if asleep_i and asleep_j:
@@ -455,7 +458,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                     nbr_h[e] = vec6f(0.0)
             f_out = ti.cast(-f_pair, ti.f32)
             f -= ti.cast(f_out, ti.f64)  # exactly minus what j gets
-            if plane:
+            if across:
                 f_plane -= ti.cast(f_out, ti.f64)
             q = rev_pos[e]
             pair_out[q, 0] = f_out
@@ -680,19 +683,25 @@ def _wedge_cutting(tools: ti.template(), t, n, v_e, hn):
 @ti.func
 def _wedge_role(x, r, tools: ti.template()):
     """A particle's part in the soil wedges (AGX Terrain's aggregate at a cutting edge): WG_IN + 4 t, a grain of tool
-    t's wedge (ahead of its face, behind the failure plane through the edge, under the front surface: it moves with
-    the wedge); WG_LAYER + 4 t, a grain of the layer beyond the plane (it takes the plane's reaction); WG_FREE."""
+    t's wedge (ahead of its face, behind the failure plane through the edge, under the ground ahead: it moves with
+    the wedge); WG_LAYER + 4 t, a grain of the layer beyond the plane (it takes the plane's reaction); WG_SIDE + 4 t,
+    a grain beside the wedge, past the edge's ends (it slides along the wedge without friction, as the plane-strain
+    wedge of the equation has no sides); WG_FREE."""
     code = WG_FREE
     for t in ti.static(range(MAX_TOOLS)):
         if code == WG_FREE and tools[t, T_WG_LIVE] > 0.0:
             rel = x - vec3(tools[t, T_WG_EW], tools[t, T_WG_EW + 1], tools[t, T_WG_EW + 2])
             s_f = rel.dot(vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2]))
-            if s_f > -r and ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1],
-                                                tools[t, T_WG_YW + 2]))) < tools[t, T_WG_HW]:
+            side = ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1], tools[t, T_WG_YW + 2]))) - \
+                tools[t, T_WG_HW]
+            if s_f > -r and side < WG_LAYER_R * r:
                 low = tools[t, T_WG_EW + 2] - WG_LOW * r
                 s_g = (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1],
                                                                   tools[t, T_WG_MG + 2]))
-                if s_g < 0.0:
+                if side >= 0.0:
+                    if s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
+                        code = WG_SIDE + 4 * t
+                elif s_g < 0.0:
                     if x[2] > low and x[2] < tools[t, T_WG_TOP]:
                         code = WG_IN + 4 * t
                 elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:

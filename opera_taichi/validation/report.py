@@ -351,6 +351,10 @@ from the version in the header. The knobs, in the order to tune them:
    normal, adhesion up the face) and the plane's reaction (at phi, cohesion along it) gives the push on the tool; the
    plane's reaction goes to a layer 2.5 radii deep beyond it, by mass, less what the normal contacts across the plane
    carried (they keep the two sides apart; across the plane a pair has no friction, rolling resistance or cohesion).
+   Grains beside the wedge, past the ends of the edge, meet it the same way: with friction, the wedge dragged them
+   along and a 3-D blade (`--param plane_strain=0 --param width=1.0`, 4 across) diverged after 8.7 s of its 9; with
+   the normal push only it read 1.30 x the plane-strain equation per metre (its edges' side wedges add to it, as in
+   the grains' 2.32 x).
    The plane starts a grain radius under the edge (from the edge, the grains the edge met piled up under it: 0.6 x
    more draft, rising), and a wedge grain the edge met under it moves off the face at the wedge's speed (left where
    it was it rose into the blade and burst out at the top; pushed off at once, its neighbours burst). The sums are
@@ -374,9 +378,12 @@ from the version in the header. The knobs, in the order to tune them:
    twice. What it is not yet: the push follows the grains the wedge holds (80-110 kg at 4 across, where the
    equation's wedge holds 88 kg from the edge), so single runs spread by about 10%; the wall sits at the top of its
    band; the wedge acts on standalone tools only, not yet on a machine's bucket (its edge and floor in the machine
-   description), so the main job's forces are still the grains'; and grains asleep beyond the tool's reach do not
-   wake for the wedge. The first version was measured in a scratch copy on the same day (a90 1.07 x, a60 delta20
-   1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 / 1.22 x).
+   description), so the main job's forces are still the grains'; and it is refused on a sleeping soil
+   (`soil.sleep`, which the main job uses), because a substep lists the blocks near a tool's grid and the wedge's
+   ground ahead lies beyond it. With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.06 x the equation's
+   5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.12 x its 6,839 N/m. The first version was measured in a scratch copy
+   on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /
+   1.22 x).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
    flows and heaps. Tune it first with the column collapse and the repose heap:
    `opera-taichi validate-physics column_collapse --param aspect_ratio=1 --param preset=NAME` and
