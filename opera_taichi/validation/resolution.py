@@ -10,7 +10,10 @@ issue "accurate at the speed people use it" asks for:
   ~ d^2 within 10% at 4; the passive wall within 20% of Rankine at 4 grains across H (the mean of WALL_SEEDS
   packings: one packing's peak spreads by +-20% at 4 across);
 - the critical height of a vertical cut, bisected, within 25% of Culmann's for dirt and kanto_loam at the coarse
-  and default resolutions.
+  and default resolutions;
+- the blade and wall runs again with the soil wedge at the tool's cutting edge (`--param wedge=1`, tools.cutting_edge:
+  the earthmoving equation's wedge, AGX Terrain's aggregate), the model that takes the resolution out of the forces:
+  its convergence column and its gates beside the grains'.
 
 It writes docs/resolution.md and its plot; each run keeps its folder under --out and `--resume` keeps the runs that
 this code would make again (same parameters, mapping and solver version).
@@ -33,15 +36,21 @@ GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gat
 WALL_SEEDS = (0, 1, 2)
 
 
+MODELS = ("", "_wedge")  # label suffix: the grains alone, then the soil wedge at the cutting edge
+
+
 def study_set() -> list[tuple[str, str, dict, str]]:
     """(label, case, parameters, resolution) of every run of the study."""
-    a90 = {**SAND, "depth": 0.3, "rake_deg": 90.0, "delta_deg": 0.0}
-    a60 = {**SAND, "depth": 0.3, "rake_deg": 60.0, "delta_deg": 20.0}
-    runs = [(f"blade_a90_d0.3_n{n}", "blade_cut", a90, str(n)) for n in CONVERGENCE_ACROSS]
-    runs += [(f"blade_a60_delta20_d0.3_n{n}", "blade_cut", a60, str(n)) for n in (4, 8)]
-    runs += [("blade_a90_d0.2_n4", "blade_cut", {**a90, "depth": 0.2}, "4")]
-    runs += [(f"passive_wall_H0.3_n4_seed{s}", "passive_wall", {**SAND, "height": 0.3, "seed": s}, "4")
-             for s in WALL_SEEDS]
+    runs = []
+    for model in MODELS:
+        tool = {"wedge": 1.0} if model else {}
+        a90 = {**SAND, "depth": 0.3, "rake_deg": 90.0, "delta_deg": 0.0, **tool}
+        a60 = {**SAND, "depth": 0.3, "rake_deg": 60.0, "delta_deg": 20.0, **tool}
+        runs += [(f"blade_a90_d0.3_n{n}{model}", "blade_cut", a90, str(n)) for n in CONVERGENCE_ACROSS]
+        runs += [(f"blade_a60_delta20_d0.3_n{n}{model}", "blade_cut", a60, str(n)) for n in (4, 8)]
+        runs += [(f"blade_a90_d0.2_n4{model}", "blade_cut", {**a90, "depth": 0.2}, "4")]
+        runs += [(f"passive_wall_H0.3_n4_seed{s}{model}", "passive_wall",
+                  {**SAND, "height": 0.3, "seed": s, **tool}, "4") for s in WALL_SEEDS]
     runs += [(f"critical_height_{preset}_{res}", "critical_height", {"preset": preset}, res)
              for preset in ("dirt", "kanto_loam") for res in ("coarse", "default")]
     return runs
@@ -88,17 +97,20 @@ def study_gates(results: dict[str, dict]) -> list[dict]:
         gates.append(dict(label=label, measured=v, reference=reference, relative_error=v / reference - 1,
                           passed=bool(abs(v / reference - 1) <= tolerance), gate=text))
 
-    for n, tol in ((4, 0.25), (8, 0.15)):
-        for name in ("a90", "a60_delta20"):
-            key = f"blade_{name}_d0.3_n{n}"
-            gate(f"blade {name} d0.3, {n} grains across d: draft / FEE", [key], lambda k=key: _ratio(results[k]),
-                 1.0, tol, f"within {tol:.0%}")
-    gate("blade draft ~ d^2 (d 0.3 vs 0.2), 4 grains across d", ["blade_a90_d0.3_n4", "blade_a90_d0.2_n4"],
-         lambda: results["blade_a90_d0.3_n4"]["measured"] / results["blade_a90_d0.2_n4"]["measured"],
-         (0.3 / 0.2) ** 2, 0.10, "within 10%")
-    walls = [f"passive_wall_H0.3_n4_seed{s}" for s in WALL_SEEDS]
-    gate(f"passive wall H0.3, 4 grains across H: thrust / Rankine, mean of {len(walls)} packings", walls,
-         lambda: sum(_ratio(results[k]) for k in walls) / len(walls), 1.0, 0.20, "within 20%")
+    for model in MODELS:
+        by = ", soil wedge" if model else ""
+        for n, tol in ((4, 0.25), (8, 0.15)):
+            for name in ("a90", "a60_delta20"):
+                key = f"blade_{name}_d0.3_n{n}{model}"
+                gate(f"blade {name} d0.3, {n} grains across d{by}: draft / FEE", [key],
+                     lambda k=key: _ratio(results[k]), 1.0, tol, f"within {tol:.0%}")
+        deep, shallow = f"blade_a90_d0.3_n4{model}", f"blade_a90_d0.2_n4{model}"
+        gate(f"blade draft ~ d^2 (d 0.3 vs 0.2), 4 grains across d{by}", [deep, shallow],
+             lambda a=deep, b=shallow: results[a]["measured"] / results[b]["measured"], (0.3 / 0.2) ** 2, 0.10,
+             "within 10%")
+        walls = [f"passive_wall_H0.3_n4_seed{s}{model}" for s in WALL_SEEDS]
+        gate(f"passive wall H0.3, 4 grains across H{by}: thrust / Rankine, mean of {len(walls)} packings", walls,
+             lambda w=walls: sum(_ratio(results[k]) for k in w) / len(w), 1.0, 0.20, "within 20%")
     for preset in ("dirt", "kanto_loam"):
         for res in ("coarse", "default"):
             key = f"critical_height_{preset}_{res}"
@@ -122,15 +134,20 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
              "## Blade draft against grains across the cut", "",
              "Plane strain (a slab between smooth symmetry walls), a90 delta0, d 0.3 m, sand phi 35 deg, draft "
              "averaged over d to 3d of travel, against the FEE's 2,769 N/m.", "",
-             "| grains across d | particles | draft N/m | draft / FEE | wall time s |", "|---|---|---|---|---|"]
-    conv = []
+             "| grains across d | particles | draft N/m | draft / FEE | wall time s | with the soil wedge: draft N/m "
+             "| draft / FEE | wall time s |", "|---|---|---|---|---|---|---|---|"]
+    conv, conv_wedge = [], []
     for n in (*CONVERGENCE_ACROSS, 20):
-        m = results.get(f"blade_a90_d0.3_n{n}")
-        if m is None:
-            lines.append(f"| {n} | - | not run | - | - |")
-            continue
-        conv.append((n, _ratio(m)))
-        lines.append(f"| {n} | {m['particles']:,} | {m['measured']:.0f} | {_ratio(m):.3f} | {m['wall_time_s']:.0f} |")
+        row = f"| {n} |"
+        for model, series in zip(MODELS, (conv, conv_wedge)):
+            m = results.get(f"blade_a90_d0.3_n{n}{model}")
+            if m is None:
+                row += (" - |" if not model else "") + " not run | - | - |"
+                continue
+            series.append((n, _ratio(m)))
+            row += (f" {m['particles']:,} |" if not model else "") + \
+                f" {m['measured']:.0f} | {_ratio(m):.3f} | {m['wall_time_s']:.0f} |"
+        lines.append(row)
     if len(conv) >= 3:
         # draft = FEE at depth d + k D (a layer k grain diameters thick dragged under the edge): ratio = (1 + k/n)^2
         ks = [n * (math.sqrt(r) - 1.0) for n, r in conv]
@@ -161,7 +178,7 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
             lo, hi = m["bracket_m"]
             lines.append(f"| {m['parameters']['preset']} | {m['resolution']} | {m['n_across']} | {m['measured']:.3f} | "
                          f"{lo:.3f}-{hi:.3f} | {m['reference']:.3f} | {_ratio(m):.3f} |")
-    plot = _plot(conv, plot_dir)
+    plot = _plot(conv, conv_wedge, plot_dir)
     if plot is not None:
         lines += ["", f"![draft over FEE against grains across the cut]({plot_dir.name}/{plot.name})"]
     report_path.write_text("\n".join(lines) + "\n")
@@ -171,8 +188,8 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
     return report_path
 
 
-def _plot(conv: list[tuple[int, float]], plot_dir: Path):
-    if not conv:
+def _plot(conv: list[tuple[int, float]], conv_wedge: list[tuple[int, float]], plot_dir: Path):
+    if not conv and not conv_wedge:
         return None
     import matplotlib
 
@@ -180,8 +197,15 @@ def _plot(conv: list[tuple[int, float]], plot_dir: Path):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.0, 4.0))
-    ns, ratios = zip(*conv)
-    ax.plot(ns, ratios, "o-", label="current mapping")
+    ns, ratios = [], []
+    for series, style, label in ((conv, "o-", "grains alone (the mapping)"),
+                                 (conv_wedge, "s-", "soil wedge at the edge (--param wedge=1)")):
+        if series:
+            x, y = zip(*series)
+            ax.plot(x, y, style, label=label)
+            ns += x
+            ratios += y
+    ns = sorted(set(ns))
     ax.axhline(1.0, color="k", lw=0.8, label="earthmoving equation")
     ax.fill_between([3.5, 4.5], 0.75, 1.25, color="tab:green", alpha=0.15, label="gate at 4 (25%)")
     ax.fill_between([7.5, 8.5], 0.85, 1.15, color="tab:olive", alpha=0.15, label="gate at 8 (15%)")
