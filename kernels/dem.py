@@ -169,7 +169,8 @@ S_THAW = 9        # 1: a frozen particle (DemSoil's frozen prefix) was asked to 
 # each substep's equilibrium, and each wedge's front surface (atomic max, order-free on both)
 S_WG_SUM = 10
 S_WG_TOP = S_WG_SUM + 8 * MAX_TOOLS
-N_STAT = S_WG_TOP + MAX_TOOLS
+S_WG_GAP = S_WG_TOP + MAX_TOOLS  # each wedge's narrowest face gap this substep (atomic min)
+N_STAT = S_WG_GAP + MAX_TOOLS
 # a rebuild's sizes (DemSoil._sizes), passed from kernel to kernel in its compute graph
 SZ_ACTIVE = 0     # active particles (sort_by_bucket)
 SZ_ENTRIES = 1    # neighbour-list entries (count_neighbors)
@@ -211,12 +212,18 @@ T_WG_YW = 55
 T_WG_MG = 58
 T_WG_VW = 61
 T_WG_PUSH = 64     # the force the wedge put on the tool in the last substep (world; part of tool_acc)
-T_WIDTH = 67
+T_WG_GAP = 67      # the last substep's narrowest gap between the face and a grain of the wedge's region, in radii
+T_WG_ENGAGED = 68  # 1 while the wedge acts: it cuts (T_WG_LIVE), its face rises from the edge over the ground ahead,
+# and the soil has touched the face since the cut began (T_WG_GAP): a face still short of the soil pushes nothing
+T_WIDTH = 69
 # wedge roles of a particle (_wedge_role): kind in the low two bits, the tool above them
 WG_FREE, WG_IN, WG_LAYER, WG_SIDE = 0, 1, 2, 3
 WG_LOW = 1.0       # the failure plane starts this many grain radii under the edge: the grains the edge meets rise
 WG_LAYER_R = 2.5   # radii: the layer beyond the plane that carries its reaction
 UNKNOWN_TOP = 1e6  # m: a front surface below -UNKNOWN_TOP is not known yet (-HUGE)
+NO_GAP = 1e30      # T_WG_GAP while no grain lies in the wedge's region
+WG_TOUCH = 0.1     # radii: a grain this near the face (or nearer) touches it
+WG_MIN_RAKE = 0.05  # rad: a face that rises from the edge at less than this (or falls) cuts no wedge
 WG_FRONT_R = 8.0   # radii: the band beyond the failure plane where the ground ahead is read (_wedge_front)
 WG_REST = 0.1      # x the wedge's speed: a grain slower than this is at rest there
 # A particle's tool clearance (tool_gap) is trusted while the tools have travelled less than it: within
@@ -689,7 +696,7 @@ def _wedge_role(x, r, tools: ti.template()):
     wedge of the equation has no sides); WG_FREE."""
     code = WG_FREE
     for t in ti.static(range(MAX_TOOLS)):
-        if code == WG_FREE and tools[t, T_WG_LIVE] > 0.0:
+        if code == WG_FREE and tools[t, T_WG_ENGAGED] > 0.0:
             rel = x - vec3(tools[t, T_WG_EW], tools[t, T_WG_EW + 1], tools[t, T_WG_EW + 2])
             s_f = rel.dot(vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2]))
             side = ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1], tools[t, T_WG_YW + 2]))) - \
@@ -710,10 +717,11 @@ def _wedge_role(x, r, tools: ti.template()):
 
 
 @ti.func
-def _wedge_front(x, v, r, tools: ti.template(), stat: ti.template()):
-    """The ground ahead of each cutting wedge, as it was: the highest top among the grains at rest (slower than
-    WG_REST x the wedge) in a band WG_FRONT_R radii deep beyond its failure plane. The grains the wedge pushes
-    (heave) and the spoil move, so they are the earthmoving equation's surcharge, not its wedge."""
+def _wedge_watch(x, v, r, tools: ti.template(), stat: ti.template()):
+    """What a cutting tool's wedge needs to know of a grain that is not in it. The ground ahead, as it was: the highest
+    top among the grains at rest (slower than WG_REST x the wedge) in a band WG_FRONT_R radii deep beyond the failure
+    plane (the grains the wedge pushes, heave, and the spoil move: they are the earthmoving equation's surcharge, not
+    its wedge). And whether the soil touches the face: the narrowest gap to it of a grain in the wedge's region."""
     for t in ti.static(range(MAX_TOOLS)):
         if tools[t, T_WG_LIVE] > 0.0:
             rel = x - vec3(tools[t, T_WG_EW], tools[t, T_WG_EW + 1], tools[t, T_WG_EW + 2])
@@ -725,16 +733,24 @@ def _wedge_front(x, v, r, tools: ti.template(), stat: ti.template()):
                 v_w = vec3(tools[t, T_WG_VW], tools[t, T_WG_VW + 1], tools[t, T_WG_VW + 2])
                 if s_g >= 0.0 and s_g < WG_FRONT_R * r and v.dot(v) < WG_REST * WG_REST * v_w.dot(v_w):
                     ti.atomic_max(stat[S_WG_TOP + t], x[2] + r)
+                if s_g < 0.0 and x[2] > tools[t, T_WG_EW + 2] - WG_LOW * r and x[2] < tools[t, T_WG_TOP]:
+                    ti.atomic_min(stat[S_WG_GAP + t], (s_f - r) / r)
 
 
 @ti.func
 def _wedge_refresh(tools: ti.template(), t):
     """Tool t's wedge in the world, for the particles' tests (T_WG_LIVE..): after the tool moved or was set."""
     live = 0.0
+    engaged = 0.0
     if tools[t, T_WG_ON] > 0.0:
         e, n, u, y, h, f, m_g, v_e, hn = _wedge_frame(tools, t)
         if _wedge_cutting(tools, t, n, v_e, hn):
             live = 1.0
+            # (once the soil has touched the face the wedge moves with it, at the gap it had: it stays engaged
+            # until the tool stops cutting)
+            if ti.atan2(u[2], -u.dot(h)) > WG_MIN_RAKE and tools[t, T_WG_TOP] > e[2] and \
+                    (tools[t, T_WG_ENGAGED] > 0.0 or tools[t, T_WG_GAP] <= WG_TOUCH):
+                engaged = 1.0
         v_w = f * (v_e.dot(n) / f.dot(n))  # along the plane, as fast into the soil as the face
         for c in ti.static(range(3)):
             tools[t, T_WG_EW + c] = e[c]
@@ -743,6 +759,7 @@ def _wedge_refresh(tools: ti.template(), t):
             tools[t, T_WG_MG + c] = m_g[c]
             tools[t, T_WG_VW + c] = v_w[c]
     tools[t, T_WG_LIVE] = live
+    tools[t, T_WG_ENGAGED] = engaged
 
 
 @ti.func
@@ -773,7 +790,7 @@ def _wedge_equilibrium(t, sums, tools: ti.template(), tool_acc: ti.template(), p
     acc = vec3(0.0)
     depth = tools[t, T_WG_TOP] - e[2]
     alpha = ti.atan2(u[2], -u.dot(h))
-    if _wedge_cutting(tools, t, n, v_e, hn) and depth > 0.0 and sums[6] > 0.0 and alpha > 0.01:
+    if tools[t, T_WG_ENGAGED] > 0.0 and depth > 0.0 and sums[6] > 0.0 and alpha > WG_MIN_RAKE:
         phi = prm[P_WG_PHI]
         delta = prm[P_WG_DELTA]
         beta = tools[t, T_WG_BETA]
@@ -1122,6 +1139,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     s_f = (x - vec3(tools[tw, T_WG_EW], tools[tw, T_WG_EW + 1], tools[tw, T_WG_EW + 2])).dot(n_w)
                     if s_f < prop[i][0]:
                         x += ti.min(prop[i][0] - s_f, v.norm() * dt) * n_w
+                    ti.atomic_min(stat[S_WG_GAP + tw], ti.max(s_f - prop[i][0], -prop[i][0]) / prop[i][0])
                     kin[i, 0] = x
                     kin[i, 1] = v
                     kin[i, 2] = vec3(0.0)
@@ -1157,8 +1175,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                             tw = role >> 2
                             force += m * vec3(tools[tw, T_WG_ACC], tools[tw, T_WG_ACC + 1], tools[tw, T_WG_ACC + 2])
                             wedge_sum[tw, 7] += m
-                        if role == WG_FREE or (role & 3) == WG_LAYER:
-                            _wedge_front(x, v, r, tools, stat)
+                        if (role & 3) != WG_IN:
+                            _wedge_watch(x, v, r, tools, stat)
                     buried = False
                     # ground, pit faces and domain walls; each contact keeps its spring in a face-keyed slot
                     ids = ti.Vector([surf_id[i, 0], surf_id[i, 1], surf_id[i, 2], surf_id[i, 3]])
@@ -1393,6 +1411,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     elif top > -UNKNOWN_TOP:
                         tools[t, T_WG_TOP] = top
                     stat[S_WG_TOP + t] = -HUGE
+                    tools[t, T_WG_GAP] = stat[S_WG_GAP + t]
+                    stat[S_WG_GAP + t] = NO_GAP
     # tools move kinematically: p += v dt, R <- Rot(w dt) R (serial: a parallel loop over four rows would cost a
     # thread-pool round trip per substep, which small soils feel)
     n_tools = MAX_TOOLS

@@ -309,6 +309,7 @@ class DemSoil:
         self.warnings: list[str] = []
         self.bed_packing: float | None = None  # solid fraction of the settled beds (None: no beds)
         self._tool_names: list[str] = []
+        self._tool_vertices: list[np.ndarray] = []  # each tool's mesh vertices, link frame (its cutting edge's checks)
         self._sdf_blocks: list[np.ndarray] = []
         self._tools_host = np.zeros((dem.MAX_TOOLS, dem.T_WIDTH))
         self._tools_on = np.zeros(dem.MAX_TOOLS, dtype=bool)  # which tools the kernels' rows have on
@@ -1141,6 +1142,7 @@ class DemSoil:
         self._sdf.from_numpy(data)
         i = len(self._tool_names)
         self._tool_names.append(name)
+        self._tool_vertices.append(np.asarray(mesh.vertices, dtype=np.float64))
         row = self._tools_host[i]
         row[:] = 0.0
         row[dem.T_OFF] = offset
@@ -1173,15 +1175,28 @@ class DemSoil:
             if not np.all(np.isfinite(v)):
                 raise UserError(f"tools.{name}.cutting_edge.{key}: expected three finite numbers, got {v.tolist()}")
         for key, v in (("face_normal", normal), ("face_up", up)):
-            if not np.linalg.norm(v) > 1e-9:
+            if not np.any(v != 0.0):
                 raise UserError(f"tools.{name}.cutting_edge.{key}: expected a direction, got the zero vector")
-        normal = normal / np.linalg.norm(normal)
+        normal = normal / np.max(np.abs(normal))  # (scaled first: any length)
+        normal /= np.linalg.norm(normal)
+        up = up / np.max(np.abs(up))
         up = up - up.dot(normal) * normal
         if not np.linalg.norm(up) > 1e-6:
             raise UserError(f"tools.{name}.cutting_edge.face_up: must not be parallel to face_normal")
         up /= np.linalg.norm(up)
         if not (math.isfinite(width) and width > 0.0):
             raise UserError(f"tools.{name}.cutting_edge.width: expected a width in m > 0, got {width!r}")
+        # the edge lies on the tool: its ends within a grain radius of the tool's extent along it
+        along = np.cross(normal, up)
+        reach = (self._tool_vertices[i] - centre) @ along
+        inside = (self._tool_vertices[i] - centre) @ normal
+        slack = self.r_max
+        if reach.min() > -0.5 * width + slack or reach.max() < 0.5 * width - slack:
+            raise UserError(f"tools.{name}.cutting_edge.width: the edge ({width:g} m about its centre) runs past the "
+                            f"tool, which spans {reach.min():.3g} to {reach.max():.3g} m from the centre along it")
+        if inside.min() > slack or inside.max() < -slack:
+            raise UserError(f"tools.{name}.cutting_edge.centre: {centre.tolist()} is off the tool (the face's plane "
+                            f"misses the tool's mesh by more than a grain radius)")
         row = self._tools_host[i]
         row[dem.T_WG_ON] = 1.0
         row[dem.T_WG_E:dem.T_WG_E + 3] = centre
@@ -1190,6 +1205,7 @@ class DemSoil:
         row[dem.T_WG_HW] = 0.5 * float(width)
         row[dem.T_WG_BETA] = 0.25 * math.pi - 0.5 * self.bulk.friction_angle  # (Rankine's; the kernels refine it)
         row[dem.T_WG_TOP] = -dem.HUGE
+        row[dem.T_WG_GAP] = dem.NO_GAP
         row[dem.T_WG_ACC:dem.T_WG_ACC + 3] = 0.0
         self._tools_dirty = True
 
@@ -1197,6 +1213,7 @@ class DemSoil:
         """Zero the kernels' diagnostics; the wedges' front surfaces are unknown until a substep finds them."""
         stat = np.zeros(dem.N_STAT)
         stat[dem.S_WG_TOP:dem.S_WG_TOP + dem.MAX_TOOLS] = -dem.HUGE
+        stat[dem.S_WG_GAP:dem.S_WG_GAP + dem.MAX_TOOLS] = dem.NO_GAP
         self._stat.from_numpy(stat)
 
     def clear_above(self, z: float) -> None:

@@ -493,7 +493,24 @@ class CuttingEdgeConfig(_Model):
     face_normal: _vec3("tool frame") = Field(description="Normal of the face that pushes the soil, pointing into it "
                                                          "(any length).")
     face_up: _vec3("tool frame") = Field(description="Direction up the face, away from the edge (any length).")
-    width: _num("m", gt=0) = Field(description="Length of the edge.")
+    width: _num("m", gt=0) = Field(description="Length of the edge (within the tool's own extent).")
+
+    @model_validator(mode="after")
+    def _check(self):
+        directions = {}
+        for key in ("face_normal", "face_up"):
+            v = [float(c) for c in getattr(self, key)]
+            big = max(abs(c) for c in v)
+            if big == 0.0:
+                raise _fail("a direction (not all zero)", v, key=key)
+            v = [c / big for c in v]  # (scaled first: any length, 1e-12 or 1e300)
+            length = math.sqrt(sum(c * c for c in v))
+            directions[key] = [c / length for c in v]
+        (ax, ay, az), (bx, by, bz) = directions["face_normal"], directions["face_up"]
+        if math.hypot(ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx) < 1e-6:
+            raise _fail("a direction across face_normal (up the face, away from the edge)", [float(c) for c in self.face_up],
+                        key="face_up")
+        return self
 
 
 class ToolConfig(_Model):
@@ -775,6 +792,10 @@ class Scene(_Model):
             self.name = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(source).stem)[:80] if source else "scene"
         seen: dict[str, int] = {}
         for i, tool in enumerate(self.tools):
+            if tool.cutting_edge is not None and self.soil is not None and self.soil.sleep:
+                raise _fail(message="not with soil.sleep yet (the grains of the wedge and of the ground ahead of it "
+                                    "beyond the tool's reach would stay asleep); set soil.sleep: false",
+                            key=f"tools.{i}.cutting_edge")
             if tool.name in seen:
                 raise _fail(f"a unique tool name (tools.{seen[tool.name]} is already {tool.name!r})", tool.name,
                             key=f"tools.{i}.name")

@@ -76,6 +76,9 @@ class Simulation:
                         raise UserError(f"tools.{binding.name}.cutting_edge: the {model.soil.solver} soil has no "
                                         f"soil wedge (a DEM soil has)")
                     self.soil.set_cutting_edge(index, edge.centre, edge.face_normal, edge.face_up, edge.width)
+            for tool in model.tools:
+                if tool.cutting_edge is not None:
+                    self._check_edge_acts(tool)
             self.tool_wrench = np.zeros((len(model.bindings), 6))
             # (machine, link) of each machine-bound tool, in soil tool order; standalone tools follow
             self._bound = [(self.machines[b.owner], b.link) for b in model.bindings if b.owner is not None]
@@ -89,6 +92,20 @@ class Simulation:
             warm_up = getattr(self.soil, "warm_up", None)  # (optional for a solver: compiles, runs nothing)
             if warm_up is not None:
                 warm_up(model.dt)
+
+    def _check_edge_acts(self, tool) -> None:
+        """A standalone tool keeps its orientation and velocity: say so when its wedge can never act."""
+        from .geometry import quat_to_matrix
+
+        rot = quat_to_matrix(np.asarray(tool.quat_xyzw, dtype=float))
+        edge = tool.cutting_edge
+        normal, up = rot @ np.asarray(edge.face_normal, float), rot @ np.asarray(edge.face_up, float)
+        if not float(np.dot(tool.velocity, normal)) > 0.0:
+            self._warn(f"tools.{tool.name}.cutting_edge: the tool never moves into its face (velocity . face_normal "
+                       f"<= 0 in the world), so its soil wedge never acts and the grains push on it alone")
+        elif not up[2] > 0.0:
+            self._warn(f"tools.{tool.name}.cutting_edge: face_up points down in the tool's pose (the face does not "
+                       f"rise from the edge), so its soil wedge never acts and the grains push on it alone")
 
     @classmethod
     def from_scene(cls, scene, overrides: dict | list | None = None, arch: str | None = None,

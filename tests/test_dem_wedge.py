@@ -38,18 +38,20 @@ def _run(sim, steps):
     return np.array(wrenches)
 
 
-def _roles(soil):
-    """The wedge's and the layer's grains, found from the tool's row as the kernels find them (_wedge_role)."""
+def _roles(soil, margin=0.5):
+    """The wedge's and the layer's grains, found from the tool's row as the kernels find them (_wedge_role), each at
+    least `margin` radii inside its region (the row is the one after the last substep, the roles were found before)."""
     p = soil.particles(["positions", "velocities", "radii", "masses"])
     x, r = p["positions"], p["radii"]
     row = soil._tools_host[0]
     rel = x - row[dem.T_WG_EW:dem.T_WG_EW + 3]
     s_f = rel @ row[dem.T_WG_NW:dem.T_WG_NW + 3]
-    band = (s_f > -r) & (np.abs(rel @ row[dem.T_WG_YW:dem.T_WG_YW + 3]) < row[dem.T_WG_HW])
+    a = margin * r
+    band = (s_f > -r + a) & (np.abs(rel @ row[dem.T_WG_YW:dem.T_WG_YW + 3]) < row[dem.T_WG_HW] - a)
     low = row[dem.T_WG_EW + 2] - dem.WG_LOW * r
     s_g = (rel + np.outer(dem.WG_LOW * r, [0.0, 0.0, 1.0])) @ row[dem.T_WG_MG:dem.T_WG_MG + 3]
-    wedge = band & (s_g < 0) & (x[:, 2] > low) & (x[:, 2] < row[dem.T_WG_TOP])
-    layer = band & (s_g >= 0) & (s_g < dem.WG_LAYER_R * r) & (x[:, 2] > low - 2 * r)
+    wedge = band & (s_g < -a) & (x[:, 2] > low + a) & (x[:, 2] < row[dem.T_WG_TOP] - a)
+    layer = band & (s_g >= a) & (s_g < dem.WG_LAYER_R * r - a) & (x[:, 2] > low - 2 * r + a)
     return p, wedge, layer, row
 
 
@@ -59,9 +61,11 @@ def test_the_wedge_moves_its_grains_pushes_the_tool_back_and_keeps_the_mass():
     before = sum(soil.mass_budget().values())
     wrench = _run(sim, 900)  # 0.9 s: 0.19 m into the bed
     p, wedge, layer, row = _roles(soil)
-    assert row[dem.T_WG_LIVE] == 1.0 and wedge.sum() >= 20 and layer.sum() >= 10
-    # every grain of the wedge moves with it, exactly: along the failure plane, as fast into the soil as the face
-    assert np.array_equal(p["velocities"][wedge], np.broadcast_to(row[dem.T_WG_VW:dem.T_WG_VW + 3], (wedge.sum(), 3)))
+    assert row[dem.T_WG_ENGAGED] == 1.0 and wedge.sum() >= 20 and layer.sum() >= 10
+    # every grain of the wedge moves with it: along the failure plane, as fast into the soil as the face (to the
+    # last substep's failure angle, which the next one refines by ~1e-10)
+    assert np.allclose(p["velocities"][wedge], row[dem.T_WG_VW:dem.T_WG_VW + 3], rtol=0, atol=1e-8)
+    assert not np.allclose(p["velocities"][layer], row[dem.T_WG_VW:dem.T_WG_VW + 3], rtol=0, atol=1e-3)
     v_w = row[dem.T_WG_VW:dem.T_WG_VW + 3]
     assert v_w[0] == pytest.approx(-0.3) and v_w[2] > 0.0  # forward with the blade, up the plane
     # the wedge's push holds the blade back (+x on a blade driven along -x) and is part of the wrench
@@ -71,14 +75,31 @@ def test_the_wedge_moves_its_grains_pushes_the_tool_back_and_keeps_the_mass():
     assert after == pytest.approx(before, rel=1e-9)
 
 
-def test_a_tool_that_does_not_cut_is_left_to_the_grains():
-    # the same edge on the blade's back face: moving away from that face, the wedge never acts, and the run is the
-    # run without an edge, bit for bit
-    back = EDGE.replace("face_normal: [-1, 0, 0]", "face_normal: [1, 0, 0]").replace("-0.02", "0.02")
-    with_back_edge = _run(_blade(back), 700)
+@pytest.mark.parametrize("edge, warning", [
+    # the same edge on the blade's back face: the blade moves away from that face
+    (EDGE.replace("face_normal: [-1, 0, 0]", "face_normal: [1, 0, 0]").replace("-0.02", "0.02"), "never moves into"),
+    # a face that falls from its edge (up the face is down): no wedge is cut under the tool
+    (EDGE.replace("face_up: [0, 0, 1]", "face_up: [0, 0, -1]"), "face_up points down"),
+], ids=["moving away from its face", "face falling from the edge"])
+def test_an_edge_that_cannot_cut_leaves_the_tool_to_the_grains_and_says_so(edge, warning):
+    # bit for bit the run without an edge, and a warning that names the key
+    sim = _blade(edge)
+    with_edge = _run(sim, 700)
     without = _run(_blade(None), 700)
-    assert np.array_equal(with_back_edge, without)
+    assert np.array_equal(with_edge, without)
     assert np.abs(without[-50:, 0, 0]).max() > 0.0  # (the blade did touch the soil)
+    assert any("tools.blade.cutting_edge" in w and warning in w for w in sim.warnings), sim.warnings
+
+
+def test_the_wedge_waits_for_the_soil_to_touch_the_face():
+    # the blade starts 8 cm short of the soil: nothing may push it until its face meets the grains (the wedge's
+    # region reaches a metre ahead of the edge, beyond that gap)
+    sim = _blade()
+    early = _run(sim, 150)  # 0.15 s: 4.5 cm of the gap closed
+    assert sim.soil._tools_host[0, dem.T_WG_ENGAGED] == 0.0
+    assert not np.any(early)
+    later = _run(sim, 500)
+    assert sim.soil._tools_host[0, dem.T_WG_ENGAGED] == 1.0 and later[-100:, 0, 0].mean() > 0.0
 
 
 def test_a_resumed_wedge_goes_on_bit_for_bit():
@@ -91,24 +112,32 @@ def test_a_resumed_wedge_goes_on_bit_for_bit():
     assert np.array_equal(_run(again, 200), ahead)
 
 
-GOOD = "{centre: [0, 0, -0.4], face_normal: [-1, 0, 0], face_up: [0, 0, 1], width: 1.0}"
+GOOD = "{centre: [-0.02, 0, -0.4], face_normal: [-1, 0, 0], face_up: [0, 0, 1], width: 1.0}"
 
 
-@pytest.mark.parametrize("edge, extra, words", [
+@pytest.mark.parametrize("edge, extra, words, schema", [
     (GOOD.replace("face_normal: [-1, 0, 0]", "face_normal: [0, 0, 0]"), [],
-     ["tools.blade.cutting_edge.face_normal", "zero vector"]),
-    (GOOD.replace("face_up: [0, 0, 1]", "face_up: [2, 0, 0]"), [], ["tools.blade.cutting_edge.face_up", "parallel"]),
-    (GOOD.replace("width: 1.0", "width: -1"), [], ["tools.0.cutting_edge.width", "> 0"]),
-    (GOOD.replace(", width: 1.0", ""), [], ["tools.0.cutting_edge.width"]),
-    (GOOD, ["soil.sleep=true"], ["tools.blade.cutting_edge", "soil.sleep"]),
-], ids=["zero normal", "up along the normal", "negative width", "no width", "on a sleeping soil"])
-def test_a_bad_cutting_edge_is_one_line_and_exit_2(edge, extra, words, capsys, tmp_path):
+     ["tools.0.cutting_edge.face_normal", "a direction (not all zero)"], True),
+    (GOOD.replace("face_up: [0, 0, 1]", "face_up: [-2e-300, 0, 0]"), [],
+     ["tools.0.cutting_edge.face_up", "across face_normal"], True),
+    (GOOD.replace("width: 1.0", "width: -1"), [], ["tools.0.cutting_edge.width", "> 0"], True),
+    (GOOD.replace(", width: 1.0", ""), [], ["tools.0.cutting_edge.width"], True),
+    (GOOD, ["soil.sleep=true"], ["tools.0.cutting_edge", "soil.sleep"], True),
+    (GOOD.replace("width: 1.0", "width: 3.0"), [], ["tools.blade.cutting_edge.width", "runs past the tool"], False),
+    (GOOD.replace("centre: [-0.02, 0, -0.4]", "centre: [-2.0, 0, -0.4]"), [],
+     ["tools.blade.cutting_edge.centre", "off the tool"], False),
+], ids=["zero normal", "up along the normal", "negative width", "no width", "on a sleeping soil",
+        "wider than the tool", "off the tool"])
+def test_a_bad_cutting_edge_is_one_line_and_exit_2(edge, extra, words, schema, capsys, tmp_path):
     sets = [a for s in COARSE + [f"tools.0.cutting_edge={edge}", *extra] for a in ("--set", s)]
     rc = cli.main(["run", str(SCENE), "--out", str(tmp_path / "run"), "--quiet", *sets])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
     for w in words:
         assert w in err[0], err[0]
+    # what the schema can tell, `validate` tells too, before any soil is built
+    assert cli.main(["validate", str(SCENE), *sets]) == (2 if schema else 0)
+    capsys.readouterr()
 
 
 @pytest.mark.slow
