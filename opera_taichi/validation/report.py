@@ -341,7 +341,8 @@ from the version in the header. The knobs, in the order to tune them:
    keeps real time, and it would make the blade gates a check of that wedge, not of the grains.
    **The soil wedge (AGX Terrain's aggregate at a cutting edge) passes the blade and the wall at 4 and 8 across:
    a tool with `cutting_edge` (docs/scene_reference.md; `validate-physics blade_cut|passive_wall --param wedge=1`).**
-   While the tool's face moves into the soil, the grains ahead of the face, behind the failure plane through the edge
+   Once the soil touches the tool's face (a grain of the wedge's region within 0.1 radius of it) and while the face
+   keeps moving into the soil and rises from its edge, the grains ahead of the face, behind the failure plane through the edge
    (at the angle that minimises the earthmoving equation's push for the face's rake and the cut's depth, found in
    the kernels each substep) and under the ground ahead move with the wedge: along the plane, as fast into the soil
    as the face, neither integrated nor touching the tool. The ground ahead is the highest grain at rest in a band 8
@@ -353,7 +354,7 @@ from the version in the header. The knobs, in the order to tune them:
    carried (they keep the two sides apart; across the plane a pair has no friction, rolling resistance or cohesion).
    Grains beside the wedge, past the ends of the edge, meet it the same way: with friction, the wedge dragged them
    along and a 3-D blade (`--param plane_strain=0 --param width=1.0`, 4 across) diverged after 8.7 s of its 9; with
-   the normal push only it read 1.30 x the plane-strain equation per metre (its edges' side wedges add to it, as in
+   the normal push only it read 1.25 x the plane-strain equation per metre (its edges' side wedges add to it, as in
    the grains' 2.32 x).
    The plane starts a grain radius under the edge (from the edge, the grains the edge met piled up under it: 0.6 x
    more draft, rising), and a wedge grain the edge met under it moves off the face at the wedge's speed (left where
@@ -363,25 +364,27 @@ from the version in the header. The knobs, in the order to tune them:
 
    | case | grains across | particles | with the wedge | the mapping alone |
    |---|---|---|---|---|
-   | blade a90 d0.3 | 3 | 774 | 1.21 | 2.16 |
-   | blade a90 d0.3 | 4 | 1,451 | 1.15 | 1.79 |
-   | blade a60 delta20 d0.3 | 4 | 1,453 | 1.22 | 1.89 |
+   | blade a90 d0.3 | 3 | 774 | 1.35 | 2.16 |
+   | blade a90 d0.3 | 4 | 1,451 | 1.17 | 1.79 |
+   | blade a60 delta20 d0.3 | 4 | 1,453 | 1.16 | 1.89 |
    | blade a90 d0.3 | 6 | 3,310 | 1.01 | 1.60 |
-   | blade a90 d0.3 | 8 | 5,879 | 0.97 | 1.36 |
-   | blade a60 delta20 d0.3 | 8 | 5,892 | 1.01 | 1.52 |
-   | draft ~ d^2 (d 0.3 / 0.2, a90) | 4 | 1,442 (d 0.2) | 2.267 against 2.25 (+0.8%) | 2.09 (-7.3%) |
-   | passive wall H 0.3, early peak / Rankine | 4 across H | 760-785 | 1.22 / 1.10 / 1.22 (seeds 0-2; mean 1.18) | 0.85 / 0.95 / 1.08 |
+   | blade a90 d0.3 | 8 | 5,879 | 0.98 | 1.36 |
+   | blade a60 delta20 d0.3 | 8 | 5,892 | 1.03 | 1.52 |
+   | draft ~ d^2 (d 0.3 / 0.2, a90) | 4 | 1,442 (d 0.2) | 2.296 against 2.25 (+2.0%) | 2.09 (-7.3%) |
+   | passive wall H 0.3, early peak / Rankine | 4 across H | 760-785 | 1.06 / 0.98 / 1.05 (seeds 0-2; mean 1.03) | 0.85 / 0.95 / 1.08 |
 
    Every blade and wall gate of the issue passes with the wedge (within 25% of the FEE at 4 across, 15% at 8, d^2
    within 10%, the wall's mean within 20%), at the speed of the grains alone (a90 at 4 across in 19.5 s against 18.3
-   s). On an H200 (`--arch cuda`, its own bed) a90 read 1.115 x and a60 delta20 1.107 x at 4 across, the same bits
-   twice. What it is not yet: the push follows the grains the wedge holds (80-110 kg at 4 across, where the
-   equation's wedge holds 88 kg from the edge), so single runs spread by about 10%; the wall sits at the top of its
-   band; the wedge acts on standalone tools only, not yet on a machine's bucket (its edge and floor in the machine
+   s). Before the wedge waited for the soil to touch the face it pushed a blade still short of the soil (the region
+   reaches a metre ahead of the edge), and the wall's early peak read 1.22 / 1.10 / 1.22 x. On an H200 (`--arch
+   cuda`, its own bed; that earlier code) a90 read 1.115 x and a60 delta20 1.107 x at 4 across, the same bits twice.
+   What it is not yet: the push follows the grains the wedge holds (80-110 kg at 4 across, where the equation's
+   wedge holds 88 kg from the edge), so single runs spread by about 10%; the wedge acts on standalone tools only,
+   not yet on a machine's bucket (its edge and floor in the machine
    description), so the main job's forces are still the grains'; and it is refused on a sleeping soil
    (`soil.sleep`, which the main job uses), because a substep lists the blocks near a tool's grid and the wedge's
-   ground ahead lies beyond it. With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.06 x the equation's
-   5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.12 x its 6,839 N/m. The first version was measured in a scratch copy
+   ground ahead lies beyond it. With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
+   5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.09 x its 6,839 N/m. The first version was measured in a scratch copy
    on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /
    1.22 x).
 2. **Rolling resistance** `rolling_resistance` (default 0.3 min(1, tan(phi) / tan(33 deg))^1.75) sets how the soil
