@@ -378,8 +378,10 @@ from the version in the header. The knobs, in the order to tune them:
    s). Before the wedge waited for the soil to touch the face it pushed a blade still short of the soil (the region
    reaches a metre ahead of the edge), and the wall's early peak read 1.22 / 1.10 / 1.22 x. On an H200 (`--arch
    cuda`, its own bed; that earlier code) a90 read 1.115 x and a60 delta20 1.107 x at 4 across, the same bits twice.
-   What it is not yet: the push follows the grains the wedge holds (80-110 kg at 4 across, where the equation's
-   wedge holds 88 kg from the edge), so single runs spread by about 10%; the wedge acts on standalone tools only,
+   What it is not yet: robust everywhere (the same a60 delta20 case at 8 across, run again inside `validate-physics
+   resolution`, diverged at 3.9 s of its 9: a grain reached 30.8 m/s; not yet explained); the push follows the
+   grains the wedge holds (80-110 kg at 4 across, where the equation's wedge holds 88 kg from the edge), so single
+   runs spread by about 10%; the wedge acts on standalone tools only,
    not yet on a machine's bucket (its edge and floor in the machine
    description), so the main job's forces are still the grains'; and it is refused on a sleeping soil
    (`soil.sleep`, which the main job uses), because a substep lists the blocks near a tool's grid and the wedge's
