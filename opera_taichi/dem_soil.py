@@ -1319,8 +1319,7 @@ class DemSoil:
             names = tuple(f"{name}_parallel" if name in ("sort_by_bucket", "build_reverse") else name for name in names)
         kernels = [getattr(dem, name) for name in names]
         if self._serial_cpu:  # (a bed that wakes past SERIAL_BELOW switches to the threaded substep mid-run)
-            wedges = "+wedges" if np.any(self._tools_host[:, dem.T_WG_ON] > 0.0) else ""
-            kernels += [_substep_kernel("serial" + wedges), _substep_kernel("block" + wedges)]
+            kernels += [_substep_kernel("serial" + self._wedges()), _substep_kernel("block" + self._wedges())]
         precompile(*kernels)
         ti.ndarray(ti.f64, dem.MAX_TOOLS).to_numpy()  # (Taichi's read-back kernel for the partition's clearances)
         for which in ("sort", "sort_keep", "lists"):
@@ -1339,10 +1338,14 @@ class DemSoil:
             _substep_kernel(layout)(*(args[a] for a in _SUBSTEP_ARGS))
             dem.end_chunk(*(args[a] for a in _END_ARGS))
 
+    def _wedges(self) -> str:
+        """The substep variant's suffix: "+wedges" while a tool has a cutting edge (the others skip its tests)."""
+        return "+wedges" if np.any(self._tools_host[:, dem.T_WG_ON] > 0.0) else ""
+
     def _layout(self) -> str:
         """The substep kernel for the next run of substeps: per particle on a GPU; on a CPU threaded, or serial
         while the last substep listed few particle slots (SERIAL_BELOW)."""
-        wedges = "+wedges" if np.any(self._tools_host[:, dem.T_WG_ON] > 0.0) else ""
+        wedges = self._wedges()
         if self.per_particle:
             return "particle" + wedges
         return ("serial" if self._serial_cpu and self._active_slots < SERIAL_BELOW else "block") + wedges
