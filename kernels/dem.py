@@ -224,6 +224,7 @@ UNKNOWN_TOP = 1e6  # m: a front surface below -UNKNOWN_TOP is not known yet (-HU
 NO_GAP = 1e30      # T_WG_GAP while no grain lies in the wedge's region
 WG_TOUCH = 0.1     # radii: a grain this near the face (or nearer) touches it
 WG_MIN_RAKE = 0.05  # rad: a face that rises from the edge at less than this (or falls) cuts no wedge
+WG_FREEZE_REACH = 3.0  # bounding-sphere radii beyond a tool's sphere that its wedge may reach (_freeze_radius)
 WG_FRONT_R = 8.0   # radii: the band beyond the failure plane where the ground ahead is read (_wedge_front)
 WG_REST = 0.1      # x the wedge's speed: a grain slower than this is at rest there
 # A particle's tool clearance (tool_gap) is trusted while the tools have travelled less than it: within
@@ -815,8 +816,9 @@ def _wedge_equilibrium(t, sums, tools: ti.template(), tool_acc: ti.template(), p
             tool_acc[t, c] += on_tool[c]
             tool_acc[t, 3 + c] += moment[c]
             tools[t, T_WG_PUSH + c] = on_tool[c]
-        if sums[7] > 0.0:
-            acc = -(plane - vec3(sums[3], sums[4], sums[5])) / sums[7]
+        if sums[7] > 0.0:  # (at most the plane's whole reaction: a layer the wedge lost touch with is not flung)
+            rest = plane - vec3(sums[3], sums[4], sums[5])
+            acc = -rest * ti.min(1.0, plane.norm() / ti.max(rest.norm(), 1e-300)) / sums[7]
         # the failure angle of the equation at this depth and rake: golden section on (0, pi/2)
         lo = ti.f64(1e-3)
         hi = ti.f64(0.5 * 3.141592653589793 - 1e-3)
@@ -924,6 +926,26 @@ def _box_meets_tool_grid(lo, hi, tools: ti.template(), t):
 
 
 @ti.func
+def _box_meets_wedge(lo, hi, tools: ti.template(), t, r):
+    """Whether a world box of particle centres may hold a grain that tool t's live wedge moves, loads or watches
+    (_wedge_role, _wedge_watch; r: at least the largest grain radius): the box against the slab beside the edge and the
+    half-spaces ahead of the face, over the floor of the wedge, and short of the front band's far side
+    (conservative, as _box_meets_tool_grid)."""
+    centre = 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo)
+    e = vec3(tools[t, T_WG_EW], tools[t, T_WG_EW + 1], tools[t, T_WG_EW + 2])
+    n = vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2])
+    y = vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1], tools[t, T_WG_YW + 2])
+    m_g = vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1], tools[t, T_WG_MG + 2])
+    rel = centre - e
+    meets = rel.dot(n) + ti.abs(n).dot(half) > -r                                             # ahead of the face
+    meets = meets and ti.abs(rel.dot(y)) - ti.abs(y).dot(half) < tools[t, T_WG_HW] + WG_LAYER_R * r  # beside
+    meets = meets and rel[2] + half[2] > -(WG_LOW + 2.0) * r                                   # over its floor
+    meets = meets and (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(m_g) - ti.abs(m_g).dot(half) < WG_FRONT_R * r
+    return meets
+
+
+@ti.func
 def _tool_sample(sdf: ti.template(), tools: ti.template(), t, x, reach):
     """Tool t's SDF sample at world point x (as sample_sdf: distance HUGE where no contact can be) and a bound of how
     far the tool may travel (T_TRAVEL) before the distance could fall below `reach`: the distance to the bounding
@@ -952,7 +974,7 @@ def _tool_sample(sdf: ti.template(), tools: ti.template(), t, x, reach):
 
 def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(), blk_hot: ti.template(),
                  blk_active: ti.template(), blk_box: ti.template(), blk_list: ti.template(), stat: ti.template(),
-                 todo: ti.i32, n_frozen: ti.i32):
+                 todo: ti.i32, n_frozen: ti.i32, prm: ti.template()):
     """Which blocks of particles take part in this substep: hot ones (marked by the last step, or by
     mark_awake_blocks after a rebuild: an awake particle in them or a pair they hold with one) and those whose
     bounding box may meet a tool's SDF grid; pair_forces adds the block of a sleeper it asks to wake.
@@ -980,6 +1002,9 @@ def _mark_blocks(n_act: ti.i32, block: ti.i32, skip: ti.i32, tools: ti.template(
             for t in range(MAX_TOOLS):
                 if tools[t, T_ON] > 0.0 and _box_meets_tool_grid(lo, hi, tools, t):
                     active = 1
+                if ti.static(WEDGES):  # the grains a wedge moves and the ground ahead it reads, asleep or not
+                    if tools[t, T_WG_LIVE] > 0.0 and _box_meets_wedge(lo, hi, tools, t, 0.5 * prm[P_CELL]):
+                        active = 1
         blk_active[b] = active
         blk_hot[b] = 0
         if active != 0:
@@ -1104,6 +1129,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     if ti.static(WEDGES):  # a wedge's grains move with it, and the layer beyond it takes its reaction
                         if not woken:
                             woken = _wedge_role(kin[i, 0], prop[i][0], tools) != WG_FREE
+                        if not woken:  # (a sleeper is the ground ahead at rest)
+                            _wedge_watch(kin[i, 0], vec3(0.0), prop[i][0], tools, stat)
                     if woken:
                         surf_id[i, TOOL_BITS] = word & TOOL_MASK
                         tool_gap[i] = -HUGE  # (the sleeping particle's gap assumed it would not move)
@@ -1131,12 +1158,16 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                         wedge_sum[tw, c] += from_free[c]
                         wedge_sum[tw, 3 + c] += across[c]
                     wedge_sum[tw, 6] += m
-                    v = vec3(tools[tw, T_WG_VW], tools[tw, T_WG_VW + 1], tools[tw, T_WG_VW + 2])
+                    # (and turning with the tool about its edge: a curling bucket's face keeps its distance from
+                    # every grain of the wedge, and the grains theirs from one another)
+                    e_w = vec3(tools[tw, T_WG_EW], tools[tw, T_WG_EW + 1], tools[tw, T_WG_EW + 2])
+                    omega = vec3(tools[tw, T_ANG], tools[tw, T_ANG + 1], tools[tw, T_ANG + 2])
+                    v = vec3(tools[tw, T_WG_VW], tools[tw, T_WG_VW + 1], tools[tw, T_WG_VW + 2]) + omega.cross(x - e_w)
                     x += v * dt
                     # off the face, which it does not touch (one the edge met under it would rise into the tool), at
                     # most as fast as the wedge moves (no jump into its neighbours)
                     n_w = vec3(tools[tw, T_WG_NW], tools[tw, T_WG_NW + 1], tools[tw, T_WG_NW + 2])
-                    s_f = (x - vec3(tools[tw, T_WG_EW], tools[tw, T_WG_EW + 1], tools[tw, T_WG_EW + 2])).dot(n_w)
+                    s_f = (x - e_w).dot(n_w)
                     if s_f < prop[i][0]:
                         x += ti.min(prop[i][0] - s_f, v.norm() * dt) * n_w
                     ti.atomic_min(stat[S_WG_GAP + tw], ti.max(s_f - prop[i][0], -prop[i][0]) / prop[i][0])
@@ -1409,6 +1440,12 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     if tools[t, T_WG_LIVE] == 0.0:
                         tools[t, T_WG_TOP] = -HUGE
                     elif top > -UNKNOWN_TOP:
+                        # the ground ahead falls at most as fast as the wedge moves (a 45 degree slope): grains
+                        # the wedge stirs up leave the band at rest for a while, the ground does not drop
+                        fall = vec3(tools[t, T_WG_VW], tools[t, T_WG_VW + 1], tools[t, T_WG_VW + 2]).norm() * dt
+                        last = tools[t, T_WG_TOP]
+                        if last > -UNKNOWN_TOP:
+                            top = ti.max(top, last - fall)
                         tools[t, T_WG_TOP] = top
                     stat[S_WG_TOP + t] = -HUGE
                     tools[t, T_WG_GAP] = stat[S_WG_GAP + t]
@@ -1451,7 +1488,7 @@ def _substep(n_act: ti.i32, block: ti.i32, skip: ti.i32, todo: ti.i32, dt: ti.f6
     """One substep, one launch: the blocks that take part, their pair forces, then everything else and the
     integration (the loops run one after the other; a launch costs ~20 us of argument setup on the CPU even in a
     compute graph, more than an idle substep's work)."""
-    _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo, n_frozen)
+    _mark_blocks(n_act, block, skip, tools, blk_hot, blk_active, blk_box, blk_list, stat, todo, n_frozen, prm)
     _pair_forces(n_act, kin, prop, nbr_off, nbr_j, nbr_h, rev_pos, pair_out, own, surf_id, prm, dt, blk_list,
                  blk_active, block, n_frozen, stat, tools)
     _step(n_act, kin, prop, flags, x_ref, own, rev_off, pair_out, surf_id, surf_h, tools, tool_acc, sdf, prm, stat,
@@ -1690,6 +1727,17 @@ def gather_particles(lo: ti.i32, n: ti.i32, order: I32_1, kin: KIN, kin_out: KIN
             surf_h_out[k, s] = surf_h[o, s]
 
 
+@ti.func
+def _freeze_radius(tools: ti.template(), t):
+    """The sphere about tool t beyond which its soil may freeze: its bounding sphere's, and with a cutting edge
+    WG_FREEZE_REACH of those radii more, for the wedge and the ground ahead it reads (a wedge that reaches farther
+    wakes the frozen grains it meets, and they thaw)."""
+    r_bs = tools[t, T_BS + 3]
+    if tools[t, T_WG_ON] > 0.0:
+        r_bs *= 1.0 + WG_FREEZE_REACH
+    return r_bs
+
+
 @ti.kernel
 def mark_frozen(n: ti.i32, n_act: ti.i32, kin: KIN, flags: I32_1, surf_id: I32_2, prm: F64_1, tools: F64_2,
                 margin: ti.f64, frozen: I32_1) -> ti.i32:
@@ -1705,7 +1753,7 @@ def mark_frozen(n: ti.i32, n_act: ti.i32, kin: KIN, flags: I32_1, surf_id: I32_2
             x = kin[i, 0]
             for t in range(MAX_TOOLS):
                 if tools[t, T_ON] > 0.0:
-                    reach = tools[t, T_BS + 3] + margin
+                    reach = _freeze_radius(tools, t) + margin
                     d = x - _sphere_centre(tools, t, _tool_rotation(tools, t))
                     if d.dot(d) <= reach * reach:
                         f = 0
@@ -1753,7 +1801,7 @@ def frozen_clearance(n: ti.i32, kin: KIN, frozen: I32_1, tools: F64_2, out: F64_
             for t in range(MAX_TOOLS):
                 if tools[t, T_ON] > 0.0:
                     centre = _sphere_centre(tools, t, _tool_rotation(tools, t))
-                    ti.atomic_min(out[t], (x - centre).norm() - tools[t, T_BS + 3])
+                    ti.atomic_min(out[t], (x - centre).norm() - _freeze_radius(tools, t))
 
 
 @ti.kernel

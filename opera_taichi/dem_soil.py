@@ -1156,7 +1156,7 @@ class DemSoil:
         self._tools_dirty = True
         return i
 
-    def set_cutting_edge(self, i: int, centre, face_normal, face_up, width: float) -> None:
+    def set_cutting_edge(self, i: int, centre, face_normal, face_up, width: float, where: str | None = None) -> None:
         """Give tool i a cutting edge (link frame): its centre, the face's normal into the soil it cuts, the direction
         up the face away from the edge, and the edge's width. While the face moves into the soil, the grains between
         the face and the failure plane through the edge (at the earthmoving equation's angle) move with the tool as
@@ -1165,37 +1165,35 @@ class DemSoil:
         if not 0 <= i < len(self._tool_names):
             raise IndexError(f"no tool {i}; {len(self._tool_names)} registered")
         name = self._tool_names[i]
+        where = where or f"tools.{name}.cutting_edge"  # (as the user wrote it, for the errors)
         if self.bulk is None:
-            raise UserError(f"tools.{name}.cutting_edge: this soil has no bulk properties to give the wedge")
-        if self.sleep:  # (the blocks a substep lists are those near a tool's grid: the wedge reaches beyond it)
-            raise UserError(f"tools.{name}.cutting_edge: not with soil.sleep yet (the grains of the wedge and of the "
-                            f"ground ahead of it beyond the tool's reach would stay asleep); set soil.sleep: false")
+            raise UserError(f"{where}: this soil has no bulk properties to give the wedge")
         centre, normal, up = (np.asarray(v, dtype=np.float64).reshape(3) for v in (centre, face_normal, face_up))
         for key, v in (("centre", centre), ("face_normal", normal), ("face_up", up)):
             if not np.all(np.isfinite(v)):
-                raise UserError(f"tools.{name}.cutting_edge.{key}: expected three finite numbers, got {v.tolist()}")
+                raise UserError(f"{where}.{key}: expected three finite numbers, got {v.tolist()}")
         for key, v in (("face_normal", normal), ("face_up", up)):
             if not np.any(v != 0.0):
-                raise UserError(f"tools.{name}.cutting_edge.{key}: expected a direction, got the zero vector")
+                raise UserError(f"{where}.{key}: expected a direction, got the zero vector")
         normal = normal / np.max(np.abs(normal))  # (scaled first: any length)
         normal /= np.linalg.norm(normal)
         up = up / np.max(np.abs(up))
         up = up - up.dot(normal) * normal
         if not np.linalg.norm(up) > 1e-6:
-            raise UserError(f"tools.{name}.cutting_edge.face_up: must not be parallel to face_normal")
+            raise UserError(f"{where}.face_up: must not be parallel to face_normal")
         up /= np.linalg.norm(up)
         if not (math.isfinite(width) and width > 0.0):
-            raise UserError(f"tools.{name}.cutting_edge.width: expected a width in m > 0, got {width!r}")
+            raise UserError(f"{where}.width: expected a width in m > 0, got {width!r}")
         # the edge lies on the tool: its ends within a grain radius of the tool's extent along it
         along = np.cross(normal, up)
         reach = (self._tool_vertices[i] - centre) @ along
         inside = (self._tool_vertices[i] - centre) @ normal
         slack = self.r_max
         if reach.min() > -0.5 * width + slack or reach.max() < 0.5 * width - slack:
-            raise UserError(f"tools.{name}.cutting_edge.width: the edge ({width:g} m about its centre) runs past the "
+            raise UserError(f"{where}.width: the edge ({width:g} m about its centre) runs past the "
                             f"tool, which spans {reach.min():.3g} to {reach.max():.3g} m from the centre along it")
         if inside.min() > slack or inside.max() < -slack:
-            raise UserError(f"tools.{name}.cutting_edge.centre: {centre.tolist()} is off the tool (the face's plane "
+            raise UserError(f"{where}.centre: {centre.tolist()} is off the tool (the face's plane "
                             f"misses the tool's mesh by more than a grain radius)")
         row = self._tools_host[i]
         row[dem.T_WG_ON] = 1.0

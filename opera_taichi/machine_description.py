@@ -26,7 +26,7 @@ PLACEHOLDER_MASS = 1.0      # kg: a link with geometry lighter than this is a st
 MOVABLE = ("revolute", "continuous", "prismatic")
 PYBULLET_MESH_SUFFIXES = (".obj", ".stl")
 CONFIG_KEYS = ("name", "urdf", "actuated_joints", "tip_link", "soil_links", "joints", "masses", "tracks",
-               "struck_volume", "command_latency")
+               "struck_volume", "command_latency", "cutting_edges")
 ACTUATOR_KEYS = ("max_speed", "max_torque", "gain")
 TRACK_KEYS = ("wheel_radius", "wheel_mass", "x", "gauge", "friction", "max_wheel_torque")
 # optional: lateral_friction (below); max_speed, the travel speed (m/s) the tracks' motors reach, null = not capped
@@ -59,6 +59,8 @@ class MachineDescription:
     struck_volume: dict[str, float] = field(default_factory=dict)   # m3 per soil link (a bucket's rated capacity)
     command_latency: float = 0.0    # s, dead time before the machine acts on a command from a ROS bridge
     movable_joints: list[str] = field(default_factory=list)   # every revolute/continuous/prismatic joint, URDF order
+    # per soil link, its cutting edge (scene.CuttingEdgeConfig, link frame): the soil wedge of AGX's shovels
+    cutting_edges: dict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------------------- entry point
@@ -113,6 +115,7 @@ def load_machine(urdf: str | Path, config: str | Path | None = None,
         actuated_joints=list(actuators), actuators=actuators, joint_limits=limits, tip_link=tip_link,
         soil_links=soil_links, collision_meshes=collision_meshes, tracks=tracks, warnings=warnings,
         struck_volume=_struck_volume(cfg, where, soil_links),
+        cutting_edges=_cutting_edges(cfg, where, soil_links),
         command_latency=_latency(cfg.get("command_latency", 0.0), f"{where}: command_latency"),
         movable_joints=_movable(joints))
 
@@ -189,6 +192,32 @@ def _struck_volume(cfg, where, soil_links) -> dict[str, float]:
         if link not in soil_links:
             raise UserError(f"{where}: struck_volume: {link!r} is not a soil link (soil_links: {', '.join(soil_links)})")
         out[link] = _positive(vol, f"{where}: struck_volume.{link}")
+    return out
+
+
+def _cutting_edges(cfg, where, soil_links) -> dict:
+    """cutting_edges: {soil link: {centre, face_normal, face_up, width}} in the link's frame, checked as a scene's
+    tools[].cutting_edge is (the soil checks that each edge lies on its link's mesh)."""
+    import pydantic
+
+    from .scene import CuttingEdgeConfig
+
+    value = cfg.get("cutting_edges") or {}
+    if not isinstance(value, dict):
+        raise UserError(f"{where}: cutting_edges must map soil links to {{centre, face_normal, face_up, width}}")
+    out = {}
+    for link, edge in value.items():
+        if link not in soil_links:
+            raise UserError(f"{where}: cutting_edges: {link!r} is not a soil link (soil_links: {', '.join(soil_links)})")
+        try:
+            out[link] = CuttingEdgeConfig.model_validate(edge)
+        except pydantic.ValidationError as exc:
+            err = exc.errors()[0]
+            ctx = err.get("ctx") or {}
+            key = ".".join(str(k) for k in (*err.get("loc", ()), ctx.get("key")) if k)
+            text = ctx.get("message") or (f"expected {ctx['expected']}, got {ctx.get('got', '')}"
+                                          if ctx.get("expected") else err.get("msg"))
+            raise UserError(f"{where}: cutting_edges.{link}{'.' + key if key else ''}: {text}") from None
     return out
 
 

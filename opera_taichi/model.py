@@ -76,6 +76,7 @@ class MachineModel:
     initial_q: dict[str, float]          # rad, every actuated joint
     motion: Optional[JointProfile]       # the scene's motion script (None = hold the initial pose)
     command_latency: float = 0.0         # s, dead time of commands from a ROS bridge (scene, else machine.yaml)
+    soil_wedge: bool = False             # cut with the soil wedge at the description's cutting edges
 
     @property
     def joints(self) -> list[str]:
@@ -247,7 +248,8 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
                         fixed_base=bool(cfg.fixed_base), initial_q=initial_q,
                         motion=_build_motion(motion, motion_key, desc, kin, initial_q, name),
                         command_latency=float(cfg.command_latency if cfg.command_latency is not None
-                                              else desc.command_latency))
+                                              else desc.command_latency),
+                        soil_wedge=bool(getattr(cfg, "soil_wedge", False)))
 
 
 def soil_parameters(soil):
@@ -333,7 +335,8 @@ def _bindings(machines, tools) -> tuple[ToolBinding, ...]:
     for m in machines:
         for link in m.description.soil_links:
             name = link if len(machines) == 1 else f"{m.name}.{link}"
-            rows.append(ToolBinding(name, m.name, link, m.description.collision_meshes[link]))
+            edge = m.description.cutting_edges.get(link) if m.soil_wedge else None
+            rows.append(ToolBinding(name, m.name, link, m.description.collision_meshes[link], edge))
     for tool in tools:
         rows.append(ToolBinding(tool.name, None, None, tool.mesh, tool.cutting_edge))
     names = [r.name for r in rows]

@@ -470,6 +470,10 @@ class MachineConfig(_Model):
     command_latency: Optional[_num("s", ge=0, le=MAX_COMMAND_LATENCY)] = Field(
         None, description="Dead time between a command from a ROS bridge and the machine acting on it (the real "
                           "machine's response delay); null = the machine config's `command_latency` (0 if none).")
+    soil_wedge: Bool = Field(False, description="Cut with the soil wedge at the machine's cutting edges (the machine "
+                             "config's `cutting_edges`: the earthmoving equation's push at any grain size). Off by "
+                             "default: the wedge's soil slides up the bucket's opening instead of filling the bucket "
+                             "(docs/validation.md); false: the soil pushes back grain by grain.")
 
     @model_validator(mode="after")
     def _resolve(self):
@@ -792,10 +796,6 @@ class Scene(_Model):
             self.name = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(source).stem)[:80] if source else "scene"
         seen: dict[str, int] = {}
         for i, tool in enumerate(self.tools):
-            if tool.cutting_edge is not None and self.soil is not None and self.soil.sleep:
-                raise _fail(message="not with soil.sleep yet (the grains of the wedge and of the ground ahead of it "
-                                    "beyond the tool's reach would stay asleep); set soil.sleep: false",
-                            key=f"tools.{i}.cutting_edge")
             if tool.name in seen:
                 raise _fail(f"a unique tool name (tools.{seen[tool.name]} is already {tool.name!r})", tool.name,
                             key=f"tools.{i}.name")

@@ -75,7 +75,10 @@ class Simulation:
                     if not hasattr(self.soil, "set_cutting_edge"):
                         raise UserError(f"tools.{binding.name}.cutting_edge: the {model.soil.solver} soil has no "
                                         f"soil wedge (a DEM soil has)")
-                    self.soil.set_cutting_edge(index, edge.centre, edge.face_normal, edge.face_up, edge.width)
+                    key = None
+                    if binding.owner is not None:
+                        key = f"machine {binding.owner}: cutting_edges.{binding.link}"
+                    self.soil.set_cutting_edge(index, edge.centre, edge.face_normal, edge.face_up, edge.width, key)
             for tool in model.tools:
                 if tool.cutting_edge is not None:
                     self._check_edge_acts(tool)

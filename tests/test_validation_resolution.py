@@ -54,3 +54,30 @@ def test_the_report_has_both_columns_and_the_plot(tmp_path):
     assert "soil wedge: draft / FEE (within 25%) | 1.150 | 1.000 | +15.0% | pass |" in text
     png = tmp_path / "resolution" / "blade_convergence.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_diverged_run_fails_its_gates_and_the_study_goes_on(tmp_path, monkeypatch):
+    from opera_taichi.errors import DivergenceError
+
+    faked = _results(1.79, 1.15, 1.10)
+    ran = []
+
+    def run_case(case, params, res, out, **_):
+        label = out.name
+        ran.append(label)
+        if label == "blade_a60_delta20_d0.3_n8_wedge":
+            raise DivergenceError("soil diverged at t = 3.891 s: particle speed 30.8 m/s above the limit 30 m/s")
+        if case == "critical_height":
+            return {**_fake(case, 1.0, reference=1.245), "n_across": 8, "bracket_m": [1.2, 1.3],
+                    "parameters": {"preset": params["preset"]}, "resolution": res}
+        return faked[label]
+
+    monkeypatch.setattr(resolution, "run_case", run_case)
+    monkeypatch.setattr(resolution, "GATE_RUN_20", tmp_path / "none")
+    path, failed = resolution.run_study(out_dir=tmp_path / "runs", report_path=tmp_path / "resolution.md")
+    assert ran == [label for label, *_ in resolution.study_set()]  # every run after the diverged one ran too
+    assert [g for g in failed if "soil wedge" in g] == ["blade a60_delta20 d0.3, 8 grains across d, soil wedge: draft / FEE"]
+    text = path.read_text()
+    assert ("| blade a60_delta20 d0.3, 8 grains across d, soil wedge: draft / FEE (within 15%) | diverged | 1.000 | - "
+            "| FAIL |") in text
+    assert "soil wedge: draft / FEE (within 25%) | 1.150 | 1.000 | +15.0% | pass |" in text

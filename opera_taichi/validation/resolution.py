@@ -25,7 +25,7 @@ import math
 from datetime import datetime
 from pathlib import Path
 
-from ..errors import UserError
+from ..errors import DivergenceError, UserError
 from .cases import check_case_folder, finished_metrics, run_case
 from .report import SAND, solver_label
 
@@ -65,7 +65,12 @@ def run_study(out_dir=None, report_path="docs/resolution.md", arch=None, quiet: 
         params = {k: str(v) for k, v in params.items()}
         m = finished_metrics(case, params, res, out / label) if resume or report_only else None
         if m is None and not report_only:
-            m = run_case(case, params, res, out / label, arch=arch, quiet=quiet)
+            try:
+                m = run_case(case, params, res, out / label, arch=arch, quiet=quiet)
+            except DivergenceError as exc:  # a failed gate, not the end of the study: the others still run
+                m = {"case": case, "parameters": params, "resolution": res, "diverged": str(exc)}
+                if not quiet:
+                    print(f"{label}: {exc}")
         if m is not None:
             results[label] = m
     if report_only and not results:  # a report of nothing would replace the one there
@@ -92,6 +97,10 @@ def study_gates(results: dict[str, dict]) -> list[dict]:
     def gate(label, labels, value, reference, tolerance, text):
         if not all(k in results for k in labels):
             gates.append(dict(label=label, measured=None, reference=reference, passed=None, gate=text))
+            return
+        if any("diverged" in results[k] for k in labels):
+            gates.append(dict(label=label, measured=None, reference=reference, passed=False, gate=text,
+                              diverged=True))
             return
         v = value()
         gates.append(dict(label=label, measured=v, reference=reference, relative_error=v / reference - 1,
@@ -141,8 +150,8 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
         row = f"| {n} |"
         for model, series in zip(MODELS, (conv, conv_wedge)):
             m = results.get(f"blade_a90_d0.3_n{n}{model}")
-            if m is None:
-                row += (" - |" if not model else "") + " not run | - | - |"
+            if m is None or "diverged" in m:
+                row += (" - |" if not model else "") + (" not run" if m is None else " diverged") + " | - | - |"
                 continue
             series.append((n, _ratio(m)))
             row += (f" {m['particles']:,} |" if not model else "") + \
@@ -158,11 +167,13 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
               "|---|---|---|---|---|"]
     for g in gates:
         if g["measured"] is None:
-            lines.append(f"| {g['label']} ({g['gate']}) | not run | {g['reference']:.3f} | - | not run |")
+            state = "diverged" if g.get("diverged") else "not run"
+            lines.append(f"| {g['label']} ({g['gate']}) | {state} | {g['reference']:.3f} | - | "
+                         f"{'FAIL' if g.get('diverged') else 'not run'} |")
             continue
         lines.append(f"| {g['label']} ({g['gate']}) | {g['measured']:.3f} | {g['reference']:.3f} | "
                      f"{g['relative_error']:+.1%} | {'pass' if g['passed'] else 'FAIL'} |")
-    walls = [(k, m) for k, m in results.items() if k.startswith("passive_wall")]
+    walls = [(k, m) for k, m in results.items() if k.startswith("passive_wall") and "diverged" not in m]
     if walls:
         lines += ["", "Passive wall at 4 grains across H, peak thrust up to 0.2 H over Rankine's 2,769 N/m, by packing "
                       "(the bed poured with another seed):", "", "| seed | particles | thrust N/m | / Rankine |",
