@@ -32,7 +32,7 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
   pair_out[E, 2] vec3 f32  force and torque each pair puts on its partner (this substep), by slot; the holder
                 adds the same f32-rounded force with the opposite sign, so the pair stays exactly antisymmetric
                 (f32 halves the scattered stores, the pair kernel's main memory traffic)
-  own[n, 2]     vec3 f64   force and torque from the pairs a particle lists itself
+  own[n, 3]     vec3 f64   force and torque from the pairs a particle lists itself (2: a wedge grain's separation)
   prm[N_PRM]    f64        model parameters and static geometry (P_* indices)
   stat[N_STAT]  f64        diagnostics written by the kernels (S_* indices)
   tools[MAX_TOOLS, T_WIDTH] f64   SDF grid placement and the current kinematic pose of each tool
@@ -344,9 +344,11 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
     (e: the entry), i.e. into j's reverse segment, which step() reads sequentially (scattered stores are
     cheaper than scattered loads). No atomics: deterministic for a given thread count, and j gets exactly
     minus i's force (momentum is conserved to round-off).
-    A soil wedge's grains (_wedge_role) move together: no force between two of them; across its failure plane a
-    pair keeps only its normal push (the plane's strength is the wedge's equilibrium), which a wedge grain holding
-    the pair sums in own[i, 1] instead of a torque (it does not spin).
+    A soil wedge's grains (_wedge_role) move together: no force between two of them, but two that overlap are
+    pushed apart, each by half the overlap (own[i, 2] for i, pair_out[q, 1] for j instead of a torque: they do not
+    spin; step() moves them by at most the wedge's own travel per substep), so a grain eased off the face does not
+    sink into its neighbours; across its failure plane a pair keeps only its normal push (the plane's strength is
+    the wedge's equilibrium), which a wedge grain holding the pair sums in own[i, 1] instead of a torque.
     """
     sleep_steps = ti.cast(prm[P_SLEEP_STEPS], ti.i32)
     wake_v2 = WAKE_FACTOR2 * prm[P_SLEEP_V2]
@@ -378,6 +380,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
         f = vec3(0.0)
         t = vec3(0.0)
         f_plane = vec3(0.0)
+        apart = vec3(0.0)  # a wedge grain's way out of the wedge grains it overlaps
         role_i = WG_FREE
         if ti.static(WEDGES):
             role_i = _wedge_role(x_i, r_i, tools)
@@ -460,6 +463,11 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
                     nbr_h[e] = h
                 if not plane:
                     f_pair -= cohesion_force(gap, prm) * n
+            elif ti.static(WEDGES) and together and d2 < r_sum * r_sum and d2 > 0.0:
+                d = ti.sqrt(d2)
+                half = (0.5 * (r_sum - d) / d) * dx
+                apart += half
+                t_j = -half
             if not touching:
                 h_old = nbr_h[e]
                 if h_old[0] != 0.0 or h_old[1] != 0.0 or h_old[3] != 0.0 or h_old[4] != 0.0:
@@ -474,6 +482,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
         if ti.static(WEDGES) and (role_i & 3) == WG_IN:
             own[i, 0] = f - f_plane
             own[i, 1] = f_plane
+            own[i, 2] = apart
         else:
             own[i, 0] = f
             own[i, 1] = t
@@ -1147,6 +1156,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     m = prop[i][1]
                     from_free = own[i, 0]
                     across = own[i, 1]
+                    apart = own[i, 2]
                     for q in range(rev_off[i], rev_off[i + 1]):
                         holder = rev_holder[q]
                         role_h = _wedge_role(kin[holder, 0], prop[holder][0], tools)
@@ -1154,6 +1164,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                             across += ti.cast(pair_out[q, 0], ti.f64)
                         else:
                             from_free += ti.cast(pair_out[q, 0], ti.f64)
+                        if (role_h & 3) == WG_IN:
+                            apart += ti.cast(pair_out[q, 1], ti.f64)
                     for c in ti.static(range(3)):
                         wedge_sum[tw, c] += from_free[c]
                         wedge_sum[tw, 3 + c] += across[c]
@@ -1164,6 +1176,11 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     omega = vec3(tools[tw, T_ANG], tools[tw, T_ANG + 1], tools[tw, T_ANG + 2])
                     v = vec3(tools[tw, T_WG_VW], tools[tw, T_WG_VW + 1], tools[tw, T_WG_VW + 2]) + omega.cross(x - e_w)
                     x += v * dt
+                    step_max = v.norm() * dt  # (the overlaps a wedge grain takes in come undone as it travels)
+                    apart_len = apart.norm()
+                    if apart_len > step_max:
+                        apart *= step_max / apart_len
+                    x += apart
                     # off the face, which it does not touch (one the edge met under it would rise into the tool), at
                     # most as fast as the wedge moves (no jump into its neighbours)
                     n_w = vec3(tools[tw, T_WG_NW], tools[tw, T_WG_NW + 1], tools[tw, T_WG_NW + 2])

@@ -241,6 +241,9 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
             raise UserError(f"{key}.initial_joints.{j} (or initial_joints_deg): {q:.4f} rad ({math.degrees(q):.1f} "
                             f"deg) is outside the joint's limits [{lo:.4f}, {hi:.4f}] rad ([{math.degrees(lo):.1f}, "
                             f"{math.degrees(hi):.1f}] deg)")
+    if getattr(cfg, "soil_wedge", False) and not desc.cutting_edges:
+        raise UserError(f"{key}.soil_wedge: machine {desc.name}'s config gives no cutting_edges (machine.yaml: "
+                        f"cutting_edges: {{<soil link>: {{centre, face_normal, face_up, width}}}}, in the link's frame)")
     kin = Kinematics(desc)
     name = getattr(cfg, "name", None) or desc.name
     return MachineModel(name=name, description=desc, kinematics=kin,

@@ -152,27 +152,31 @@ def test_at_4_grains_across_the_wedge_reads_the_earthmoving_equation(tmp_path):
 
 def test_a_wedge_cuts_sleeping_and_frozen_soil_as_it_cuts_awake_soil(monkeypatch, tmp_path):
     """The blade with its edge through an awake bed, a sleeping one and one whose far soil is frozen (beds of any
-    size, one live layer): the wedge's grains, the layer beyond its plane and the ground ahead it reads wake or are
-    read asleep, so the steady draft is the same within 10% (one cut is one sample of a chaotic path: at 6 cm the
-    sleeping and frozen beds read -6% and -8% on seed 0; a wedge blind to the sleeping ground ahead would not engage,
-    and the grains alone read about twice the draft) and the mass is kept to round-off."""
+    size, one live layer), on three packings: the wedge's grains, the layer beyond its plane and the ground ahead it
+    reads wake or are read asleep, so the mean steady draft is the same within 5%, and the mass is kept to
+    round-off. (One cut is one sample of a chaotic path: at 6 cm, sleeping and frozen minus awake read -8.6 / -13%,
+    +1.9 / +4.0% and +4.2 / +6.5% on seeds 0, 1, 2, means -0.8 / -0.8%. A wedge blind to the sleeping ground ahead
+    would not engage, and the grains alone read about twice the draft.)"""
     from opera_taichi import dem_soil
     from opera_taichi.recorders import read_csv_columns
 
-    drafts = []
+    drafts = {}
     for sleep, freeze in (("false", False), ("true", False), ("true", True)):
         if freeze:
             monkeypatch.setattr(dem_soil, "FREEZE_MIN", 0)
             monkeypatch.setattr(dem_soil, "FREEZE_FEWEST", 0)
             monkeypatch.setattr(dem_soil, "FREEZE_LAYERS", 1)
-        out = tmp_path / f"{sleep}_{freeze}"
-        sets = COARSE[:1] + ["sim.duration=3.0", f"soil.sleep={sleep}", f"tools.0.cutting_edge={EDGE}",
-                             "output.plots=false"]
-        assert cli.main(["run", str(SCENE), "--quiet", "--out", str(out), *[a for s in sets for a in ("--set", s)]]) == 0
-        mass = read_csv_columns(out / "soil_mass.csv")["mass_kg"]
-        assert np.all(np.abs(mass - mass[0]) <= 1e-9 * mass[0])
-        w = read_csv_columns(out / "tool_wrench.csv")
-        drafts.append(float(w["fx"][w["t"] > 1.0].mean()))
-    assert drafts[0] > 1000.0
-    assert drafts[1] == pytest.approx(drafts[0], rel=0.10), drafts
-    assert drafts[2] == pytest.approx(drafts[0], rel=0.10), drafts
+        for seed in (0, 1, 2):
+            out = tmp_path / f"{sleep}_{freeze}_{seed}"
+            sets = COARSE[:1] + ["sim.duration=3.0", f"soil.sleep={sleep}", f"tools.0.cutting_edge={EDGE}",
+                                 f"sim.seed={seed}", "output.plots=false"]
+            assert cli.main(["run", str(SCENE), "--quiet", "--out", str(out),
+                             *[a for s in sets for a in ("--set", s)]]) == 0
+            mass = read_csv_columns(out / "soil_mass.csv")["mass_kg"]
+            assert np.all(np.abs(mass - mass[0]) <= 1e-9 * mass[0])
+            w = read_csv_columns(out / "tool_wrench.csv")
+            drafts.setdefault((sleep, freeze), []).append(float(w["fx"][w["t"] > 1.0].mean()))
+    awake = np.mean(drafts[("false", False)])
+    assert awake > 1000.0
+    assert np.mean(drafts[("true", False)]) == pytest.approx(awake, rel=0.05), drafts
+    assert np.mean(drafts[("true", True)]) == pytest.approx(awake, rel=0.05), drafts

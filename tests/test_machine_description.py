@@ -391,6 +391,13 @@ def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
     assert on.cutting_edge == edge and off.cutting_edge is None
 
     settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
+    bare = tmp_path / "bare" / "machine.yaml"  # a machine without edges: asking for its wedge is an error
+    bare.parent.mkdir()
+    bare.write_text(yaml.safe_dump({k: v for k, v in settings.items() if k != "cutting_edges"}))
+    with pytest.raises(UserError) as info:
+        build_model(load_scene(scene, ["machine.soil_wedge=true", f"machine.config={bare}"]))
+    assert str(info.value).startswith("machine.soil_wedge:") and "no cutting_edges" in str(info.value)
+
     urdf = machines_dir() / "zx120" / "zx120.urdf"
     config = tmp_path / "machine.yaml"
     for bad, words in (({"arm_link": settings["cutting_edges"]["bucket_link"]}, ["cutting_edges", "'arm_link'",

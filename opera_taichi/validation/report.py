@@ -378,14 +378,29 @@ from the version in the header. The knobs, in the order to tune them:
    s). Before the wedge waited for the soil to touch the face it pushed a blade still short of the soil (the region
    reaches a metre ahead of the edge), and the wall's early peak read 1.22 / 1.10 / 1.22 x. On an H200 (`--arch
    cuda`, its own bed; that earlier code) a90 read 1.115 x and a60 delta20 1.107 x at 4 across, the same bits twice.
-   What it is not yet: robust everywhere (the same a60 delta20 case at 8 across, run again inside `validate-physics
-   resolution`, diverged at 3.9 s of its 9: a grain reached 30.8 m/s; not yet explained); the push follows the
+   The divergence (2026-11-27): the a60 delta20 case at 8 across with the study's parameters diverged at 3.891 s
+   of its 9 (a grain at 30.8 m/s) because the ground ahead fell by 0.2 m in one substep: the layer's push had set
+   the band's grains moving, so none was left at rest up high, the wedge shrank at once and freed a slab of grains
+   that the easing off the face had pressed into one another (pairs overlapping by up to 1.47 radii: a wedge's
+   grains exert no force on one another). The ground ahead now falls at most as fast as the wedge moves (a 45
+   degree slope), and the layer takes at most the plane's whole reaction; the same case reads 1.010 x, a90 1.108 x
+   and a60 delta20 1.172 x at 4 across (final code, one run each). Keeping the grains the edge meets out of the
+   wedge instead (no easing, no overlaps) read a60 delta20 1.70 x at 4 across: they bear on the trench floor with
+   friction under the edge, the grains' excess again; so the overlaps of eased grains stay, released only as
+   they reach the top of the wedge or the wedge lets go. What it is not yet: the push follows the
    grains the wedge holds (80-110 kg at 4 across, where the equation's wedge holds 88 kg from the edge), so single
-   runs spread by about 10%; the wedge acts on standalone tools only,
-   not yet on a machine's bucket (its edge and floor in the machine
-   description), so the main job's forces are still the grains'; and it is refused on a sleeping soil
-   (`soil.sleep`, which the main job uses), because a substep lists the blocks near a tool's grid and the wedge's
-   ground ahead lies beyond it. With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
+   runs spread by about 10%. On a sleeping soil (`soil.sleep`) a substep lists the blocks the wedge's region and
+   the band ahead may meet, a sleeper in the band is read as ground at rest, and the far soil freezes only beyond 3
+   bounding-sphere radii more (tests/test_dem_wedge.py: the blade's draft on a sleeping and on a frozen bed -6% and
+   -8% of the awake one's at 6 cm, one sample each). **The machine's bucket** has its edge in machine.yaml
+   (`cutting_edges`: the edge to the top edge of the opening, AGX's shovel plane) but it is opt-in
+   (`machine.soil_wedge: true`): on the main job at 8 cm it lowers the drag's mean |Fx| from 35.9 to 29.4 kN (8-16
+   s; the wedge's own push is 10-14 kN, the equation's for a 0.9 m flat blade 11.5 kN), while the bucket still
+   presses its nearly flat floor into the trench (Fz 36-41 kN over 8-16 s, the boom at its torque limit 40% of the
+   run either way): the grains under the floor bear on it, which no cutting wedge replaces. And the bucket holds
+   148 kg instead of 401 kg: the wedge's grains slide up the opening's plane, as up a blade's face, instead of
+   passing through it into the bucket (AGX moves that soil into the bucket's inner volume; the next step here).
+   With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
    5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.09 x its 6,839 N/m. The first version was measured in a scratch copy
    on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /
    1.22 x).
