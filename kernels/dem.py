@@ -32,7 +32,8 @@ Data layout (n = particle capacity, E = neighbour-entry capacity):
   pair_out[E, 2] vec3 f32  force and torque each pair puts on its partner (this substep), by slot; the holder
                 adds the same f32-rounded force with the opposite sign, so the pair stays exactly antisymmetric
                 (f32 halves the scattered stores, the pair kernel's main memory traffic)
-  own[n, 3]     vec3 f64   force and torque from the pairs a particle lists itself (2: a wedge grain's separation)
+  own[n, 4]     vec3 f64   force and torque from the pairs a particle lists itself (2: a wedge grain's separation;
+                           3: its wedge role, _role)
   prm[N_PRM]    f64        model parameters and static geometry (P_* indices)
   stat[N_STAT]  f64        diagnostics written by the kernels (S_* indices)
   tools[MAX_TOOLS, T_WIDTH] f64   SDF grid placement and the current kinematic pose of each tool
@@ -384,6 +385,7 @@ def _pair_forces(n_act: ti.i32, kin: ti.template(), prop: ti.template(), nbr_off
         role_i = WG_FREE
         if ti.static(WEDGES):
             role_i = _wedge_role(x_i, r_i, tools)
+            own[i, 3] = vec3(ti.cast(role_i, ti.f64), 0.0, 0.0)  # (step() reads it: positions move there)
         for e in range(nbr_off[i], nbr_off[i + 1]):
             j = nbr_j[e]
             together = False  # both in a wedge: no force
@@ -724,6 +726,14 @@ def _wedge_role(x, r, tools: ti.template()):
                 elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
                     code = WG_LAYER + 4 * t
     return code
+
+
+@ti.func
+def _role(own: ti.template(), i):
+    """Particle i's part in the soil wedges this substep (_wedge_role), as pair_forces found it before any particle
+    moved: step() moves them in parallel, so a role found there from a neighbour's position would depend on the
+    threads' order (a grain of a listed block: its block, and those holding its pairs, were listed)."""
+    return ti.cast(own[i, 3][0], ti.i32)
 
 
 @ti.func
@@ -1118,7 +1128,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                 word = surf_id[i, TOOL_BITS]
                 in_wedge = False
                 if ti.static(WEDGES):
-                    in_wedge = (_wedge_role(kin[i, 0], prop[i][0], tools) & 3) == WG_IN
+                    in_wedge = (_role(own, i) & 3) == WG_IN
                 if sleep_steps > 0 and (word >> CALM_SHIFT) >= sleep_steps:
                     # asleep: no forces, no integration; wake on a neighbour's request or a tool within r + skin,
                     # integrated again from the next substep (its pairs are evaluated again from then on)
@@ -1137,7 +1147,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                         tool_gap[i] = travel + clear
                     if ti.static(WEDGES):  # a wedge's grains move with it, and the layer beyond it takes its reaction
                         if not woken:
-                            woken = _wedge_role(kin[i, 0], prop[i][0], tools) != WG_FREE
+                            woken = _wedge_role(kin[i, 0], prop[i][0], tools) != WG_FREE  # (a block added late has no role)
                         if not woken:  # (a sleeper is the ground ahead at rest)
                             _wedge_watch(kin[i, 0], vec3(0.0), prop[i][0], tools, stat)
                     if woken:
@@ -1151,7 +1161,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     # a wedge's grain moves with the wedge: along the failure plane, at the speed that keeps it on
                     # the face; what the free grains and, across the plane, the layer put on it go to the wedge's sums
                     # (the tool's push comes from its equilibrium after the substep: _wedge_equilibrium)
-                    tw = _wedge_role(kin[i, 0], prop[i][0], tools) >> 2
+                    tw = _role(own, i) >> 2
                     x = kin[i, 0]
                     m = prop[i][1]
                     from_free = own[i, 0]
@@ -1159,7 +1169,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                     apart = own[i, 2]
                     for q in range(rev_off[i], rev_off[i + 1]):
                         holder = rev_holder[q]
-                        role_h = _wedge_role(kin[holder, 0], prop[holder][0], tools)
+                        role_h = _role(own, holder)
                         if role_h == WG_LAYER + 4 * tw:
                             across += ti.cast(pair_out[q, 0], ti.f64)
                         else:
@@ -1218,7 +1228,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                         torque += ti.cast(pair_out[q, 1], ti.f64)
                     force += m * vec3(prm[P_G], prm[P_G + 1], prm[P_G + 2])
                     if ti.static(WEDGES):
-                        role = _wedge_role(x, r, tools)
+                        role = _role(own, i)
                         if (role & 3) == WG_LAYER:  # the wedge's failure plane: its reaction, by mass
                             tw = role >> 2
                             force += m * vec3(tools[tw, T_WG_ACC], tools[tw, T_WG_ACC + 1], tools[tw, T_WG_ACC + 2])

@@ -553,7 +553,7 @@ class DemSoil:
         self._x_ref = nd(dem.vec4, cap)
         self._tool_gap = nd(ti.f64, cap)
         self._tool_gap.fill(-dem.HUGE)
-        self._own = nd(dem.vec3, (cap, 3))  # (2: a wedge grain's way out of its overlaps)
+        self._own = nd(dem.vec3, (cap, 4))  # (2, 3: a wedge grain's way out of its overlaps, the wedge roles)
         blocks = max(min(cap, dem.STEP_BLOCKS), cap // dem.BLOCK) + 1
         self._partial = nd(ti.f64, (blocks, dem.PART_WIDTH))
         self._blk_hot, self._blk_active = nd(ti.i32, blocks), nd(ti.i32, blocks)
