@@ -52,6 +52,7 @@ def test_the_report_has_both_columns_and_the_plot(tmp_path):
     assert "| 4 | 1,000 | 4957 | 1.790 | 10 | 3185 | 1.150 | 10 |" in text
     assert "| 12 | 1,000 | 4957 | 1.790 | 10 | not run | - | - |" in text
     assert "soil wedge: draft / FEE (within 25%) | 1.150 | 1.000 | +15.0% | pass |" in text
+    assert "| grains alone | 2 | 1,000 | 2659 | 0.960 |" in text and "| soil wedge | 2 | 1,000 | 3046 | 1.100 |" in text
     png = tmp_path / "resolution" / "blade_convergence.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

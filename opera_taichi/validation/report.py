@@ -382,24 +382,35 @@ from the version in the header. The knobs, in the order to tune them:
    of its 9 (a grain at 30.8 m/s) because the ground ahead fell by 0.2 m in one substep: the layer's push had set
    the band's grains moving, so none was left at rest up high, the wedge shrank at once and freed a slab of grains
    that the easing off the face had pressed into one another (pairs overlapping by up to 1.47 radii: a wedge's
-   grains exert no force on one another). The ground ahead now falls at most as fast as the wedge moves (a 45
-   degree slope), and the layer takes at most the plane's whole reaction; the same case reads 1.010 x, a90 1.108 x
-   and a60 delta20 1.172 x at 4 across (final code, one run each). Keeping the grains the edge meets out of the
-   wedge instead (no easing, no overlaps) read a60 delta20 1.70 x at 4 across: they bear on the trench floor with
-   friction under the edge, the grains' excess again; so the overlaps of eased grains stay, released only as
-   they reach the top of the wedge or the wedge lets go. What it is not yet: the push follows the
-   grains the wedge holds (80-110 kg at 4 across, where the equation's wedge holds 88 kg from the edge), so single
-   runs spread by about 10%. On a sleeping soil (`soil.sleep`) a substep lists the blocks the wedge's region and
-   the band ahead may meet, a sleeper in the band is read as ground at rest, and the far soil freezes only beyond 3
-   bounding-sphere radii more (tests/test_dem_wedge.py: the blade's draft on a sleeping and on a frozen bed -6% and
-   -8% of the awake one's at 6 cm, one sample each). **The machine's bucket** has its edge in machine.yaml
+   grains exert no force on one another). Keeping the grains the edge meets out of the wedge (no easing, no
+   overlaps) read a60 delta20 1.70 x at 4 across: they bear on the trench floor with friction under the edge, the
+   grains' excess again. So now: the ground ahead falls at most as fast as the wedge moves (a 45 degree slope); the
+   layer takes at most the plane's whole reaction; two of the wedge's grains that overlap are pushed apart, half
+   the overlap each and at most the wedge's own travel per substep (the largest overlap inside the wedge reads
+   0.000 radii at 3 and 6 s of that case; OPERA's own bucket with the wedge had diverged at 14.25 s through such a
+   release); and step() takes each grain's wedge role as pair_forces found it, before any grain moved (read from a
+   neighbour's position another thread may have moved, the wedge's sums depended on the threads' order: three CUDA
+   runs of one case differed from the wedge's engagement on). The final figures are in docs/resolution.md (its one
+   command, `validate-physics resolution`): a90 1.30 / 1.22 / 1.02 / 1.00 / 0.95 x at 3 / 4 / 6 / 8 / 12 across,
+   a60 delta20 1.12 x at 4 and 1.02 x at 8, the draft's d^2 +9.1% at 4, the wall 1.08 / 0.98 / 1.05 x (mean 1.04);
+   every gate of the issue passes with the wedge, a90 at 4 across by the least (1.224 against 1.25). Twice the
+   same case gives the same bits on the CPU (a90 at 4 and a60 delta20 at 8 across, threaded). What it is not yet:
+   the push follows the grains the wedge holds (80-110 kg at 4 across, where the equation's wedge holds 88 kg from
+   the edge), so single runs spread by about 10%. On a sleeping soil (`soil.sleep`) a substep lists the blocks the
+   wedge's region and the band ahead may meet, a sleeper in the band is read as ground at rest, and the far soil
+   freezes only beyond 3 bounding-sphere radii more (tests/test_dem_wedge.py: the blade's draft on a sleeping and
+   on a frozen bed against the awake one's at 6 cm, -6.8 / -6.6%, +3.4 / -0.3% and +6.7 / +5.2% on seeds 0-2,
+   means +1.1 / -0.6%). **The machine's bucket** has its edge in machine.yaml
    (`cutting_edges`: the edge to the top edge of the opening, AGX's shovel plane) but it is opt-in
-   (`machine.soil_wedge: true`): on the main job at 8 cm it lowers the drag's mean |Fx| from 35.9 to 29.4 kN (8-16
-   s; the wedge's own push is 10-14 kN, the equation's for a 0.9 m flat blade 11.5 kN), while the bucket still
-   presses its nearly flat floor into the trench (Fz 36-41 kN over 8-16 s, the boom at its torque limit 40% of the
-   run either way): the grains under the floor bear on it, which no cutting wedge replaces. And the bucket holds
-   148 kg instead of 401 kg: the wedge's grains slide up the opening's plane, as up a blade's face, instead of
-   passing through it into the bucket (AGX moves that soil into the bucket's inner volume; the next step here).
+   (`machine.soil_wedge: true`): on the main job at 8 cm it lowers the drag's mean |Fx| from 35.9 to 25.2 kN (8-16
+   s; the wedge's own push is 10-14 kN, the equation's for a 0.9 m flat blade 11.5 kN) and the mean Fz from 41.0
+   to 28.8 kN (the boom at its torque limit 36% of the run against 40%): the rest is the bucket's nearly flat floor
+   pressed into the trench by the path, which no cutting wedge replaces. But the bucket holds 149 kg instead of
+   401 kg: the wedge's grains slide up the opening's plane, as up a blade's face, instead of passing through it
+   into the bucket (AGX moves that soil into the bucket's inner volume; the next step here). And it costs speed:
+   the main job runs at 1.12-1.15 x real time with the wedge against 1.93-2.02 x without (alternating pairs on an
+   idle 2-vCPU host), the grains of the wedge, its layer and the band ahead being awake or listed. OPERA's own
+   bucket (its URDF with this machine.yaml) with the wedge: 37.7 against 48.3 kN, 349 against 425 kg.
    With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
    5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.09 x its 6,839 N/m. The first version was measured in a scratch copy
    on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /

@@ -176,10 +176,10 @@ def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, 
     walls = [(k, m) for k, m in results.items() if k.startswith("passive_wall") and "diverged" not in m]
     if walls:
         lines += ["", "Passive wall at 4 grains across H, peak thrust up to 0.2 H over Rankine's 2,769 N/m, by packing "
-                      "(the bed poured with another seed):", "", "| seed | particles | thrust N/m | / Rankine |",
-                  "|---|---|---|---|"]
-        lines += [f"| {m['parameters'].get('seed', 0):g} | {m['particles']:,} | {m['measured']:.0f} | "
-                  f"{_ratio(m):.3f} |" for k, m in walls]
+                      "(the bed poured with another seed):", "", "| model | seed | particles | thrust N/m | / Rankine |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {'soil wedge' if k.endswith('_wedge') else 'grains alone'} | {float(m['parameters'].get('seed', 0)):g} "
+                  f"| {m['particles']:,} | {m['measured']:.0f} | {_ratio(m):.3f} |" for k, m in walls]
     crit = [(k, m) for k, m in results.items() if k.startswith("critical_height")]
     if crit:
         lines += ["", "Critical heights (bisected between a cut that stands 5 s and one that falls; the bracket is "
