@@ -1,7 +1,7 @@
 """The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
 
     python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
-                                  [--duration 25] [--repeat 1] [--spin-wait]
+                                  [--wedge off|on|both] [--duration 25] [--repeat 1] [--spin-wait]
 
 For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
 `--site` adds scenes/zx120_site.yaml (the same dig in a 20 m x 20 m x 1 m bed) at 8 cm, and with the 8 cm main job
@@ -10,7 +10,11 @@ after the first run of a size; run the command twice for a cold cache). A table 
 
   radius, particles, awake particles (mean over the drag, soil.sleep), real-time factor (simulated / wall seconds of
   the loop), particle-steps per second, and the bucket's mean draft over the drag (8-16 s) against the earthmoving
-  equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade)
+  equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade),
+  and the soil the bucket holds at the end
+
+`--wedge on` cuts with the soil wedge at the bucket's edge (machine.soil_wedge; docs/validation.md), `both` runs each
+row without and with it.
 
 `--arch cuda` runs the soil in its GPU layout (one thread per grain; docs/performance.md).
 `--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
@@ -63,14 +67,16 @@ def fee_draft(model) -> float:
                              cohesion=bulk.cohesion).draft
 
 
-def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float, spin_wait: bool = False) -> dict:
+def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float, spin_wait: bool = False,
+        wedge: bool = False) -> dict:
     from opera_taichi.model import build_model
     from opera_taichi.recorders import read_csv_columns
     from opera_taichi.runner import run_scene
     from opera_taichi.scene import load_scene
 
     sets = [f"soil.overrides.radius={radius}", f"soil.sleep={str(sleep).lower()}", "output.plots=false",
-            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={str(spin_wait).lower()}"]
+            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={str(spin_wait).lower()}",
+            f"machine.soil_wedge={str(wedge).lower()}"]
     scene = load_scene(scene_path, sets)
     awake = AwakeCount()
     with tempfile.TemporaryDirectory() as tmp:
@@ -81,11 +87,13 @@ def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float
         w = read_csv_columns(Path(tmp) / "run" / "tool_wrench.csv")
         drag = (w["t"] >= DRAG[0]) & (w["t"] <= DRAG[1])
         draft = float(np.abs(w["fx"][drag]).mean()) if drag.any() else float("nan")
+        held = sum(float(tool["soil_held_kg"]) for tool in
+                   json.loads((Path(tmp) / "run" / "summary.json").read_text())["tools"].values())
     fee = fee_draft(build_model(scene))
     return dict(scene=scene.name, radius=radius, sleep=sleep, particles=result.particles,
                 awake=float(np.mean(awake.counts)) if awake.counts else float(result.particles),
                 rtf=result.real_time_factor, wall=result.wall_time, setup=manifest.get("setup_wall_time_s"),
-                total=total, psps=manifest.get("particle_steps_per_s"), draft=draft, fee=fee)
+                total=total, psps=manifest.get("particle_steps_per_s"), draft=draft, fee=fee, held=held, wedge=wedge)
 
 
 def main() -> int:
@@ -116,34 +124,40 @@ def main() -> int:
     parser.add_argument("--repeat", type=at_least(1, int, "a whole number"), default=1,
                         help="runs per row: the median RTF and its range")
     parser.add_argument("--spin-wait", action="store_true", help="sim.spin_wait: keep the other cores running")
+    parser.add_argument("--wedge", choices=("off", "on", "both"), default="off",
+                        help="machine.soil_wedge: cut with the soil wedge at the bucket's edge")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
+    wedges = {"both": (False, True), "on": (True,), "off": (False,)}[args.wedge]
     runs = [(ROOT / "scenes" / "zx120_excavation.yaml", r) for r in args.radii]
     if args.site:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
     print(host_line() + "\n")
     if args.spin_wait:
         print("sim.spin_wait on\n")
-    print("| scene | radius m | sleep | particles | awake (mean) | RTF | RTF range | M particle-steps/s "
-          "| draft kN (8-16 s) | FEE kN | draft/FEE |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| scene | radius m | sleep | wedge | particles | awake (mean) | RTF | RTF range | M particle-steps/s "
+          "| draft kN (8-16 s) | FEE kN | draft/FEE | held kg |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     medians = {}
     for path, radius in runs:
         for sleep in sleeps:
-            tries = sorted((one(path, radius, sleep, args.arch, args.duration, args.spin_wait)
-                            for _ in range(args.repeat)),
-                           key=lambda row: row["rtf"])
-            r = tries[len(tries) // 2]  # the median run (the upper one of an even count)
-            medians[(path.stem, radius, sleep)] = r["rtf"]
-            spread = f"{tries[0]['rtf']:.3f}-{tries[-1]['rtf']:.3f}" if len(tries) > 1 else "-"
-            print(f"| {r['scene']} | {radius:g} | {'on' if sleep else 'off'} | {r['particles']:,} | "
-                  f"{r['awake']:,.0f} | {r['rtf']:.3f} | {spread} | {(r['psps'] or 0) / 1e6:.2f} | "
-                  f"{r['draft'] / 1e3:.1f} | {r['fee'] / 1e3:.1f} | {r['draft'] / r['fee']:.2f} |", flush=True)
+            for wedge in wedges:
+                tries = sorted((one(path, radius, sleep, args.arch, args.duration, args.spin_wait, wedge)
+                                for _ in range(args.repeat)),
+                               key=lambda row: row["rtf"])
+                r = tries[len(tries) // 2]  # the median run (the upper one of an even count)
+                medians[(path.stem, radius, sleep, wedge)] = r["rtf"]
+                spread = f"{tries[0]['rtf']:.3f}-{tries[-1]['rtf']:.3f}" if len(tries) > 1 else "-"
+                print(f"| {r['scene']} | {radius:g} | {'on' if sleep else 'off'} | {'on' if wedge else 'off'} | "
+                      f"{r['particles']:,} | {r['awake']:,.0f} | {r['rtf']:.3f} | {spread} | "
+                      f"{(r['psps'] or 0) / 1e6:.2f} | {r['draft'] / 1e3:.1f} | {r['fee'] / 1e3:.1f} | "
+                      f"{r['draft'] / r['fee']:.2f} | {r['held']:.0f} |", flush=True)
     # the cost should follow the moving soil: the site within 20% of the small bed (both as the scenes run: asleep)
-    site, small = medians.get(("zx120_site", 0.08, True)), medians.get(("zx120_excavation", 0.08, True))
-    if site and small:
-        print(f"\nsite / small bed at 8 cm, sleep on: {site / small:.3f} of the small bed's real-time factor "
-              f"(within 20%: >= 0.8)")
+    for wedge in wedges:
+        site, small = (medians.get((stem, 0.08, True, wedge)) for stem in ("zx120_site", "zx120_excavation"))
+        if site and small:
+            print(f"\nsite / small bed at 8 cm, sleep on, wedge {'on' if wedge else 'off'}: {site / small:.3f} of the "
+                  f"small bed's real-time factor (within 20%: >= 0.8)")
     return 0
 
 

@@ -193,9 +193,11 @@ T_ON, T_OFF, T_NX, T_NY, T_NZ, T_ORG, T_H, T_POS, T_ROT, T_VEL, T_ANG = 0, 1, 2,
 T_BS = 27         # bounding sphere of the SDF grid (link-frame centre, radius): no contact outside it
 T_TRAVEL = 31     # how far, at most, a point near the tool has moved in the tool's frame since the start (m; tool_gap)
 # A cutting edge (link frame; host-set): its centre, the face's normal (into the soil it cuts) and the direction up
-# the face away from the edge, unit vectors, and the edge's half width; T_WG_ON 1 where the tool has one. The kernels
+# the face away from the edge, unit vectors, and the edge's half width; T_WG_ON 1 where the tool has one whose face
+# is a plate (a blade), WG_OPENING where its face is an opening (a bucket's mouth: _into_the_opening). The kernels
 # keep the rest: the failure angle, the front surface's height and the layer's acceleration (last substep's).
 T_WG_ON = 32
+WG_PLATE, WG_OPENING = 1.0, 2.0
 T_WG_E = 33
 T_WG_N = 36
 T_WG_U = 39
@@ -713,7 +715,7 @@ def _wedge_role(x, r, tools: ti.template()):
             s_f = rel.dot(vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2]))
             side = ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1], tools[t, T_WG_YW + 2]))) - \
                 tools[t, T_WG_HW]
-            if s_f > -r and side < WG_LAYER_R * r:
+            if s_f > -r and side < WG_LAYER_R * r and not _into_the_opening(rel, r, tools, t):
                 low = tools[t, T_WG_EW + 2] - WG_LOW * r
                 s_g = (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1],
                                                                   tools[t, T_WG_MG + 2]))
@@ -726,6 +728,18 @@ def _wedge_role(x, r, tools: ti.template()):
                 elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
                     code = WG_LAYER + 4 * t
     return code
+
+
+@ti.func
+def _into_the_opening(rel, r, tools: ti.template(), t):
+    """Whether a grain at rel from tool t's edge is free to pass into its opening (a bucket's mouth, T_WG_ON
+    WG_OPENING): it lies over the edge, up the opening's plane by more than its radius. At an opening the wedge is the
+    soil the edge meets, which rises with it until it clears the edge; the soil over the edge meets the tool only
+    through that wedge and the tool's plates, and the advancing bucket takes it in (over a blade's face it moves with
+    the wedge)."""
+    n = vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2])
+    u = vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1], tools[t, T_WG_YW + 2]).cross(n)  # (y = n x u)
+    return tools[t, T_WG_ON] == WG_OPENING and rel.dot(u) > r
 
 
 @ti.func

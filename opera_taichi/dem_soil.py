@@ -1156,12 +1156,15 @@ class DemSoil:
         self._tools_dirty = True
         return i
 
-    def set_cutting_edge(self, i: int, centre, face_normal, face_up, width: float, where: str | None = None) -> None:
+    def set_cutting_edge(self, i: int, centre, face_normal, face_up, width: float, where: str | None = None,
+                         opening: bool = False) -> None:
         """Give tool i a cutting edge (link frame): its centre, the face's normal into the soil it cuts, the direction
         up the face away from the edge, and the edge's width. While the face moves into the soil, the grains between
         the face and the failure plane through the edge (at the earthmoving equation's angle) move with the tool as
         one wedge, and the tool feels that wedge's equilibrium with the bulk soil's strength (AGX Terrain's soil
-        aggregate) instead of the grains' contacts: forces of the earthmoving equation at any grain size."""
+        aggregate) instead of the grains' contacts: forces of the earthmoving equation at any grain size. opening: the
+        face is a bucket's mouth, not a plate: the wedge is the soil the edge meets, which rises with it until it
+        clears the edge, and the soil over the edge passes into the bucket."""
         if not 0 <= i < len(self._tool_names):
             raise IndexError(f"no tool {i}; {len(self._tool_names)} registered")
         name = self._tool_names[i]
@@ -1196,7 +1199,7 @@ class DemSoil:
             raise UserError(f"{where}.centre: {centre.tolist()} is off the tool (the face's plane "
                             f"misses the tool's mesh by more than a grain radius)")
         row = self._tools_host[i]
-        row[dem.T_WG_ON] = 1.0
+        row[dem.T_WG_ON] = dem.WG_OPENING if opening else dem.WG_PLATE
         row[dem.T_WG_E:dem.T_WG_E + 3] = centre
         row[dem.T_WG_N:dem.T_WG_N + 3] = normal
         row[dem.T_WG_U:dem.T_WG_U + 3] = up

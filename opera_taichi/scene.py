@@ -471,9 +471,10 @@ class MachineConfig(_Model):
         None, description="Dead time between a command from a ROS bridge and the machine acting on it (the real "
                           "machine's response delay); null = the machine config's `command_latency` (0 if none).")
     soil_wedge: Bool = Field(False, description="Cut with the soil wedge at the machine's cutting edges (the machine "
-                             "config's `cutting_edges`: the earthmoving equation's push at any grain size). Off by "
-                             "default: the wedge's soil slides up the bucket's opening instead of filling the bucket "
-                             "(docs/validation.md); false: the soil pushes back grain by grain.")
+                             "config's `cutting_edges`: the earthmoving equation's push where the edge meets the "
+                             "soil, at any grain size). Off by default: on the main job the bucket's drag is mostly "
+                             "its load and floor, which the wedge leaves to the grains, and it costs a third of the "
+                             "speed (docs/validation.md); false: the soil pushes back grain by grain.")
 
     @model_validator(mode="after")
     def _resolve(self):
@@ -498,6 +499,11 @@ class CuttingEdgeConfig(_Model):
                                                          "(any length).")
     face_up: _vec3("tool frame") = Field(description="Direction up the face, away from the edge (any length).")
     width: _num("m", gt=0) = Field(description="Length of the edge (within the tool's own extent).")
+    opening: Bool = Field(False, description="The face is an opening, not a plate (a bucket's mouth, from its cutting "
+                                             "edge to its top edge): the wedge is the soil the edge meets, which "
+                                             "rises with it until it clears the edge, and the soil over the edge "
+                                             "passes into the bucket; false: the whole wedge slides up the face as "
+                                             "up a blade.")
 
     @model_validator(mode="after")
     def _check(self):

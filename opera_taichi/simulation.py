@@ -78,7 +78,8 @@ class Simulation:
                     key = None
                     if binding.owner is not None:
                         key = f"machine {binding.owner}: cutting_edges.{binding.link}"
-                    self.soil.set_cutting_edge(index, edge.centre, edge.face_normal, edge.face_up, edge.width, key)
+                    self.soil.set_cutting_edge(index, edge.centre, edge.face_normal, edge.face_up, edge.width, key,
+                                               opening=edge.opening)
             for tool in model.tools:
                 if tool.cutting_edge is not None:
                     self._check_edge_acts(tool)

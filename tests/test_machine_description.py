@@ -373,7 +373,7 @@ def test_track_max_speed_is_read_checked_and_its_absence_said(tmp_path):
 
 def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
     """machine.yaml's cutting_edges: the ZX120 bucket's edge lies on the edge's end face and its face (the opening's
-    plane, edge to top edge) faces the mouth; it acts where a scene sets machine.soil_wedge: true; a bad edge is one
+    plane, edge to top edge, an opening) faces the mouth; it acts where a scene sets machine.soil_wedge: true; a bad edge is one
     line naming the file and the key."""
     from opera_taichi.model import build_model
     from opera_taichi.scene import load_scene
@@ -385,6 +385,7 @@ def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
     assert distance[0] < 1e-6
     normal, up = np.asarray(edge.face_normal, float), np.asarray(edge.face_up, float)
     assert abs(normal @ up) < 1e-9 and normal[0] > 0.0  # the mouth faces +x of bucket_link
+    assert edge.opening  # (no plate: the soil over the edge passes into the bucket)
     scene = Path(__file__).resolve().parents[1] / "scenes" / "zx120_excavation.yaml"
     on = build_model(load_scene(scene, ["machine.soil_wedge=true"])).bindings[0]
     off = build_model(load_scene(scene)).bindings[0]  # (opt-in)
@@ -405,7 +406,9 @@ def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
                        ({"bucket_link": {**settings["cutting_edges"]["bucket_link"], "face_normal": [0, 0, 0]}},
                         ["cutting_edges.bucket_link.face_normal", "not all zero"]),
                        ({"bucket_link": {**settings["cutting_edges"]["bucket_link"], "width": -1}},
-                        ["cutting_edges.bucket_link.width"])):
+                        ["cutting_edges.bucket_link.width"]),
+                       ({"bucket_link": {**settings["cutting_edges"]["bucket_link"], "opening": "maybe"}},
+                        ["cutting_edges.bucket_link.opening", "maybe"])):
         config.write_text(yaml.safe_dump({**settings, "cutting_edges": bad}))
         message = _one_line_error(urdf, config=config)
         assert "machine.yaml" in message and all(w in message for w in words), message
