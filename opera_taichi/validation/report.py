@@ -400,17 +400,32 @@ from the version in the header. The knobs, in the order to tune them:
    wedge's region and the band ahead may meet, a sleeper in the band is read as ground at rest, and the far soil
    freezes only beyond 3 bounding-sphere radii more (tests/test_dem_wedge.py: the blade's draft on a sleeping and
    on a frozen bed against the awake one's at 6 cm, -6.8 / -6.6%, +3.4 / -0.3% and +6.7 / +5.2% on seeds 0-2,
-   means +1.1 / -0.6%). **The machine's bucket** has its edge in machine.yaml
-   (`cutting_edges`: the edge to the top edge of the opening, AGX's shovel plane) but it is opt-in
-   (`machine.soil_wedge: true`): on the main job at 8 cm it lowers the drag's mean |Fx| from 35.9 to 25.2 kN (8-16
-   s; the wedge's own push is 10-14 kN, the equation's for a 0.9 m flat blade 11.5 kN) and the mean Fz from 41.0
-   to 28.8 kN (the boom at its torque limit 36% of the run against 40%): the rest is the bucket's nearly flat floor
-   pressed into the trench by the path, which no cutting wedge replaces. But the bucket holds 149 kg instead of
-   401 kg: the wedge's grains slide up the opening's plane, as up a blade's face, instead of passing through it
-   into the bucket (AGX moves that soil into the bucket's inner volume; the next step here). And it costs speed:
-   the main job runs at 1.12-1.15 x real time with the wedge against 1.93-2.02 x without (alternating pairs on an
-   idle 2-vCPU host), the grains of the wedge, its layer and the band ahead being awake or listed. OPERA's own
-   bucket (its URDF with this machine.yaml) with the wedge: 37.7 against 48.3 kN, 349 against 425 kg.
+   means +1.1 / -0.6%). **The machine's bucket** has its edge in machine.yaml (`cutting_edges`: the edge to the top
+   edge of the opening, AGX's shovel plane), marked `opening: true`, and it is opt-in (`machine.soil_wedge: true`). A
+   mouth is no plate: there the wedge is the soil the edge meets (at most a grain radius over the edge, up the
+   mouth's plane), which rises with the bucket until it clears the edge, and the tool feels that wedge's equilibrium
+   instead of the grains' contacts at its edge; the soil over the edge meets the bucket only through the wedge and
+   the plates, and passes in (tests/test_dem_wedge.py: a scoop 2.5 grains across its cut fills, and with its mouth
+   taken for a plate the whole wedge slides up it and the scoop stays empty). The first bucket wedge took the mouth
+   for a plate: its grains slid up the mouth's plane ahead of the bucket, which held 149 kg instead of 401 kg on the
+   main job at 8 cm, and most of its lower drag (25.2 against 35.9 kN) was the soil it kept out. Two other versions
+   were tried and dropped: the soil over the edge waiting where it was cut for the mouth to take it in was a wall the
+   bucket's plates and load pressed on (a peak of 142 against 114 kN), and such soil yielding to any push was
+   bulldozed ahead again (a scoop held 14 kg). On the main job (the drag's mean |Fx| over 8-16 s and the load at the
+   end, seeds 0 / 1 / 2): at 8 cm the grains alone read 35.9 / 36.1 / 29.7 kN and hold 401 / 415 / 486 kg, with the
+   wedge 34.0 / 32.4 / 28.6 kN and 305 / 392 / 376 kg; at 12 cm 29.3 / 41.9 / 22.0 kN and 528 / 241 / 487 kg against
+   20.9 / 22.7 / 19.7 kN and 339 / 294 / 278 kg; at 5 cm (seeds 0 / 1) 27.3 / 27.4 kN and 494 / 496 kg against 25.7 /
+   27.1 kN and 247 / 247 kg. The wedge's own push is 8.6 kN of the 8 cm drag (the equation's for a 0.9 m flat blade
+   at the cut: 11.5 kN); the rest is the load and the bucket's floor, which the path presses into the trench (the
+   boom at its torque limit 30-48% of the run) and no cutting wedge replaces, so the wedge stays opt-in. It steadies
+   the 12 cm drag over packings (19.7-22.7 against 22.0-41.9 kN) but takes in less soil than the grains alone, half
+   as much at 5 cm (where that soil goes is the next step; its grains released without the mouth's speed into the
+   soil did no better: 258 kg on seed 0 at 8 cm), and it costs speed: 1.22-1.26 x real time against 2.02-2.06 x
+   (alternating pairs at 8 cm on an idle 2-vCPU host; `python benchmarks/realtime.py --wedge both`). OPERA's own
+   bucket (its URDF with this machine.yaml) with the wedge: 39.3 against 48.3 kN, 401 against 425 kg. On a GPU the
+   bucket's wedge does not yet repeat bit for bit: two `--arch cuda` runs of the main job with the plate version
+   drifted apart from 1e-9 N at t = 9.05 s on an NVIDIA H200, where the default (two runs) and a blade's wedge
+   (three) repeat bit for bit.
    With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
    5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.09 x its 6,839 N/m. The first version was measured in a scratch copy
    on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /
