@@ -705,9 +705,11 @@ def _wedge_cutting(tools: ti.template(), t, n, v_e, hn):
 def _wedge_role(x, r, tools: ti.template()):
     """A particle's part in the soil wedges (AGX Terrain's aggregate at a cutting edge): WG_IN + 4 t, a grain of tool
     t's wedge (ahead of its face, behind the failure plane through the edge, under the ground ahead: it moves with
-    the wedge); WG_LAYER + 4 t, a grain of the layer beyond the plane (it takes the plane's reaction); WG_SIDE + 4 t,
-    a grain beside the wedge, past the edge's ends (it slides along the wedge without friction, as the plane-strain
-    wedge of the equation has no sides); WG_FREE."""
+    the wedge); WG_LAYER + 4 t, a grain of the layer beyond the plane (it takes the plane's reaction; at an opening,
+    whose wedge is only the soil the edge meets, the soil beyond takes its push through the contacts alone: the whole
+    plane's reaction on that short a layer would shove the ground ahead); WG_SIDE + 4 t, a grain beside the wedge,
+    past the edge's ends (it slides along the wedge without friction, as the plane-strain wedge of the equation has no
+    sides); WG_FREE. At an opening a grain over the edge is free (_into_the_opening)."""
     code = WG_FREE
     for t in ti.static(range(MAX_TOOLS)):
         if code == WG_FREE and tools[t, T_WG_ENGAGED] > 0.0:
@@ -725,7 +727,7 @@ def _wedge_role(x, r, tools: ti.template()):
                 elif s_g < 0.0:
                     if x[2] > low and x[2] < tools[t, T_WG_TOP]:
                         code = WG_IN + 4 * t
-                elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
+                elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r and tools[t, T_WG_ON] != WG_OPENING:
                     code = WG_LAYER + 4 * t
     return code
 

@@ -472,9 +472,9 @@ class MachineConfig(_Model):
                           "machine's response delay); null = the machine config's `command_latency` (0 if none).")
     soil_wedge: Bool = Field(False, description="Cut with the soil wedge at the machine's cutting edges (the machine "
                              "config's `cutting_edges`: the earthmoving equation's push where the edge meets the "
-                             "soil, at any grain size). Off by default: on the main job the bucket's drag is mostly "
-                             "its load and floor, which the wedge leaves to the grains, and it costs a third of the "
-                             "speed (docs/validation.md); false: the soil pushes back grain by grain.")
+                             "soil, at any grain size). Off by default for now: on the main job it takes in less "
+                             "soil than the grains and costs about a fifth of the speed (docs/validation.md); "
+                             "false: the soil pushes back grain by grain.")
 
     @model_validator(mode="after")
     def _resolve(self):

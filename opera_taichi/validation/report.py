@@ -406,26 +406,29 @@ from the version in the header. The knobs, in the order to tune them:
    mouth's plane), which rises with the bucket until it clears the edge, and the tool feels that wedge's equilibrium
    instead of the grains' contacts at its edge; the soil over the edge meets the bucket only through the wedge and
    the plates, and passes in (tests/test_dem_wedge.py: a scoop 2.5 grains across its cut fills, and with its mouth
-   taken for a plate the whole wedge slides up it and the scoop stays empty). The first bucket wedge took the mouth
-   for a plate: its grains slid up the mouth's plane ahead of the bucket, which held 149 kg instead of 401 kg on the
-   main job at 8 cm, and most of its lower drag (25.2 against 35.9 kN) was the soil it kept out. Two other versions
-   were tried and dropped: the soil over the edge waiting where it was cut for the mouth to take it in was a wall the
-   bucket's plates and load pressed on (a peak of 142 against 114 kN), and such soil yielding to any push was
-   bulldozed ahead again (a scoop held 14 kg). On the main job (the drag's mean |Fx| over 8-16 s and the load at the
-   end, seeds 0 / 1 / 2): at 8 cm the grains alone read 35.9 / 36.1 / 29.7 kN and hold 401 / 415 / 486 kg, with the
-   wedge 34.0 / 32.4 / 28.6 kN and 305 / 392 / 376 kg; at 12 cm 29.3 / 41.9 / 22.0 kN and 528 / 241 / 487 kg against
-   20.9 / 22.7 / 19.7 kN and 339 / 294 / 278 kg; at 5 cm (seeds 0 / 1) 27.3 / 27.4 kN and 494 / 496 kg against 25.7 /
-   27.1 kN and 247 / 247 kg. The wedge's own push is 8.6 kN of the 8 cm drag (the equation's for a 0.9 m flat blade
-   at the cut: 11.5 kN); the rest is the load and the bucket's floor, which the path presses into the trench (the
-   boom at its torque limit 30-48% of the run) and no cutting wedge replaces, so the wedge stays opt-in. It steadies
-   the 12 cm drag over packings (19.7-22.7 against 22.0-41.9 kN) but takes in less soil than the grains alone, half
-   as much at 5 cm (where that soil goes is the next step; its grains released without the mouth's speed into the
-   soil did no better: 258 kg on seed 0 at 8 cm), and it costs speed: 1.22-1.26 x real time against 2.02-2.06 x
-   (alternating pairs at 8 cm on an idle 2-vCPU host; `python benchmarks/realtime.py --wedge both`). OPERA's own
-   bucket (its URDF with this machine.yaml) with the wedge: 39.3 against 48.3 kN, 401 against 425 kg. On a GPU the
-   bucket's wedge does not yet repeat bit for bit: two `--arch cuda` runs of the main job with the plate version
-   drifted apart from 1e-9 N at t = 9.05 s on an NVIDIA H200, where the default (two runs) and a blade's wedge
-   (three) repeat bit for bit.
+   taken for a plate the whole wedge slides up it and the scoop stays empty); the soil beyond the failure plane takes
+   the wedge's push through its contacts alone. The first bucket wedge took the mouth for a plate: its grains slid up
+   the mouth's plane ahead of the bucket, which held 149 kg instead of 401 kg on the main job at 8 cm, and most of
+   its lower drag (25.2 against 35.9 kN) was the soil it kept out. Three other versions were tried and dropped: the
+   soil over the edge waiting where it was cut for the mouth to take it in was a wall the bucket's plates and load
+   pressed on (a peak of 142 against 114 kN); such soil yielding to any push was bulldozed ahead again (a scoop held
+   14 kg); and a layer beyond the plane taking the whole plane's reaction, as a blade's does, shoved the ground
+   ahead, the more the finer the grains, its layer being the short one of the edge's soil (the 5 cm dig held 247 kg
+   on both seeds). On the main job (the drag's mean |Fx| over 8-16 s and the load at the end, seeds 0 / 1 / 2) the
+   grains alone read 29.3 / 41.9 / 22.0 kN and hold 528 / 241 / 487 kg at 12 cm, 35.9 / 36.1 / 29.7 kN and 401 / 415
+   / 486 kg at 8 cm, 27.3 / 27.4 kN and 494 / 496 kg at 5 cm (seeds 0 / 1); with the wedge 20.3 / 23.2 / 22.4 kN and
+   414 / 235 / 326 kg, 32.9 / 26.7 / 21.4 kN and 335 / 312 / 325 kg, 24.8 / 26.2 kN and 414 / 429 kg. So the means
+   read 31.1 / 33.9 / 27.4 kN at 12 / 8 / 5 cm with the grains alone and 22.0 / 27.0 / 25.5 kN with the wedge: the
+   grains' drag falls toward the wedge's as the grains get finer, and the wedge's changes less with the grain size;
+   the wedge takes in 75-85% of the grains' load. The wedge's own push is 8.0 kN of the 8 cm drag (the equation's for
+   a 0.9 m flat blade at the cut: 11.5 kN); the rest is the load and the bucket's floor, which the path presses into
+   the trench (the boom at its torque limit 21-45% of the run), and which the wedge leaves to the grains. It stays
+   opt-in for now: it costs speed, 1.61-1.62 x real time against 1.91-2.06 x (alternating pairs at 8 cm on an idle
+   2-vCPU host; `python benchmarks/realtime.py --wedge both` compares the two), it leaves soil out, and on a GPU it
+   does not yet repeat bit for bit (below). OPERA's own bucket (its URDF with this machine.yaml) with the wedge: 44.3
+   against 48.3 kN, 327 against 425 kg. On a GPU the bucket's wedge does not yet repeat bit for bit: two `--arch
+   cuda` runs of the main job with the plate version drifted apart from 1e-9 N at t = 9.05 s on an NVIDIA H200, where
+   the default (two runs) and a blade's wedge (three) repeat bit for bit.
    With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
    5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.09 x its 6,839 N/m. The first version was measured in a scratch copy
    on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /
