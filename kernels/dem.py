@@ -815,7 +815,8 @@ def _fee_p(beta, alpha, prm: ti.template(), depth):
 
 
 @ti.func
-def _wedge_equilibrium(t, sums, tools: ti.template(), tool_acc: ti.template(), prm: ti.template()):
+def _wedge_equilibrium(t, sums, tools: ti.template(), tool_acc: ti.template(), prm: ti.template(),
+                       on_grid: ti.template()):
     """Tool t's wedge after a substep. sums: what the free grains put on its grains (0-2), what the layer beyond the
     plane puts on them across it (3-5), their mass (6), the layer's mass (7). The wedge is in equilibrium under its
     weight, those forces, the face's push (at delta to its normal, with adhesion up the face) and the plane's
@@ -847,6 +848,10 @@ def _wedge_equilibrium(t, sums, tools: ti.template(), tool_acc: ti.template(), p
         origin = vec3(tools[t, T_POS], tools[t, T_POS + 1], tools[t, T_POS + 2])
         on_tool = -push
         moment = (e + u * (depth / (3.0 * ti.sin(alpha))) - origin).cross(on_tool)
+        if ti.static(on_grid):  # (the GPU layout's: the grains' terms come by atomics on WRENCH_QUANTUM's grid, so a
+            # total kept on it is exact in any order; one off it would round each term by where the order put it)
+            on_tool = _on_grid(on_tool, WRENCH_QUANTUM)
+            moment = _on_grid(moment, WRENCH_QUANTUM)
         for c in ti.static(range(3)):
             tool_acc[t, c] += on_tool[c]
             tool_acc[t, 3 + c] += moment[c]
@@ -1477,7 +1482,7 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                             if blk_active[blk] != 0:
                                 for c in ti.static(range(WG_SUMS)):
                                     sums[c] += partial[blk, PART_WG + WG_SUMS * t + c]
-                    _wedge_equilibrium(t, sums, tools, tool_acc, prm)
+                    _wedge_equilibrium(t, sums, tools, tool_acc, prm, PER_PARTICLE)
                     # the front surface (_wedge_front); kept while no grain at rest shows it
                     top = stat[S_WG_TOP + t]
                     if tools[t, T_WG_LIVE] == 0.0:

@@ -424,11 +424,15 @@ from the version in the header. The knobs, in the order to tune them:
    a 0.9 m flat blade at the cut: 11.5 kN); the rest is the load and the bucket's floor, which the path presses into
    the trench (the boom at its torque limit 21-45% of the run), and which the wedge leaves to the grains. It stays
    opt-in for now: it costs speed, 1.61-1.62 x real time against 1.91-2.06 x (alternating pairs at 8 cm on an idle
-   2-vCPU host; `python benchmarks/realtime.py --wedge both` compares the two), it leaves soil out, and on a GPU it
-   does not yet repeat bit for bit (below). OPERA's own bucket (its URDF with this machine.yaml) with the wedge: 44.3
-   against 48.3 kN, 327 against 425 kg. On a GPU the bucket's wedge does not yet repeat bit for bit: two `--arch
-   cuda` runs of the main job with the plate version drifted apart from 1e-9 N at t = 9.05 s on an NVIDIA H200, where
-   the default (two runs) and a blade's wedge (three) repeat bit for bit.
+   2-vCPU host; `python benchmarks/realtime.py --wedge both` compares the two), and it leaves soil out. OPERA's own
+   bucket (its URDF with this machine.yaml) with the wedge: 44.3 against 48.3 kN, 327 against 425 kg. On a GPU the
+   bucket's wedge did not repeat bit for bit: two `--arch cuda` runs of the main job with the plate version drifted
+   apart from 1e-9 N at t = 9.05 s on an NVIDIA H200, where the default (two runs) and a blade's wedge (three) repeat
+   bit for bit. The GPU's layout on the CPU's threads showed it too (eight threads, from 7 s): the wedge's push went
+   into the tool's force off the grid on which the grains' terms are added by atomics, so the order of the threads
+   rounded the sum. The push is now put on that grid in the GPU's layout (the CPU's layouts, which sum in block
+   order, keep their bits), and 8 s of the dig write the same bits on one thread and on eight
+   (tests/test_dem_gpu_layout.py); a GPU has not run it since.
    With cohesion and adhesion (a90 d0.3, 4 across): c 2 kPa 1.09 x the equation's
    5,075 N/m, c_a 1.5 kPa with delta 20 deg 1.09 x its 6,839 N/m. The first version was measured in a scratch copy
    on the same day (a90 1.07 x, a60 delta20 1.12 x at 4 across, a90 0.97 x at 8 across, the wall 1.23 / 1.10 /
