@@ -717,18 +717,20 @@ def _wedge_role(x, r, tools: ti.template()):
             s_f = rel.dot(vec3(tools[t, T_WG_NW], tools[t, T_WG_NW + 1], tools[t, T_WG_NW + 2]))
             side = ti.abs(rel.dot(vec3(tools[t, T_WG_YW], tools[t, T_WG_YW + 1], tools[t, T_WG_YW + 2]))) - \
                 tools[t, T_WG_HW]
-            if s_f > -r and side < WG_LAYER_R * r and not _into_the_opening(rel, r, tools, t):
-                low = tools[t, T_WG_EW + 2] - WG_LOW * r
-                s_g = (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1],
-                                                                  tools[t, T_WG_MG + 2]))
-                if side >= 0.0:
-                    if s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
-                        code = WG_SIDE + 4 * t
-                elif s_g < 0.0:
-                    if x[2] > low and x[2] < tools[t, T_WG_TOP]:
-                        code = WG_IN + 4 * t
-                elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r and tools[t, T_WG_ON] != WG_OPENING:
-                    code = WG_LAYER + 4 * t
+            # (nested: Taichi's `and` evaluates both sides, and most grains are far from the slab)
+            if s_f > -r and side < WG_LAYER_R * r:
+                if not _into_the_opening(rel, r, tools, t):
+                    low = tools[t, T_WG_EW + 2] - WG_LOW * r
+                    s_g = (rel + vec3(0.0, 0.0, WG_LOW * r)).dot(vec3(tools[t, T_WG_MG], tools[t, T_WG_MG + 1],
+                                                                      tools[t, T_WG_MG + 2]))
+                    if side >= 0.0:
+                        if s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r:
+                            code = WG_SIDE + 4 * t
+                    elif s_g < 0.0:
+                        if x[2] > low and x[2] < tools[t, T_WG_TOP]:
+                            code = WG_IN + 4 * t
+                    elif s_g < WG_LAYER_R * r and x[2] > low - 2.0 * r and tools[t, T_WG_ON] != WG_OPENING:
+                        code = WG_LAYER + 4 * t
     return code
 
 
@@ -1167,8 +1169,8 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                                 clear = ti.min(clear, gap_t)
                         tool_gap[i] = travel + clear
                     if ti.static(WEDGES):  # a wedge's grains move with it, and the layer beyond it takes its reaction
-                        if not woken:
-                            woken = _wedge_role(kin[i, 0], prop[i][0], tools) != WG_FREE  # (a block added late has no role)
+                        if not woken:  # (found here: a block added late has no role)
+                            woken = _wedge_role(kin[i, 0], prop[i][0], tools) != WG_FREE
                         if not woken:  # (a sleeper is the ground ahead at rest)
                             _wedge_watch(kin[i, 0], vec3(0.0), prop[i][0], tools, stat)
                     if woken:
