@@ -1254,7 +1254,13 @@ def _step(n_act: ti.i32, kin: ti.template(), prop: ti.template(), flags: ti.temp
                         role = _role(own, i)
                         if (role & 3) == WG_LAYER:  # the wedge's failure plane: its reaction, by mass
                             tw = role >> 2
-                            force += m * vec3(tools[tw, T_WG_ACC], tools[tw, T_WG_ACC + 1], tools[tw, T_WG_ACC + 2])
+                            push = vec3(tools[tw, T_WG_ACC], tools[tw, T_WG_ACC + 1], tools[tw, T_WG_ACC + 2])
+                            v_w = vec3(tools[tw, T_WG_VW], tools[tw, T_WG_VW + 1], tools[tw, T_WG_VW + 2])
+                            # (the soil beyond the plane moves no faster than the wedge that drives it: a grain that
+                            # does is left to its contacts, or a layer of fine grains, light and at the verge of
+                            # sliding, runs away along the plane: the blade diverged at 20 grains across)
+                            if v.dot(push) < v_w.norm() * push.norm():
+                                force += m * push
                             wedge_sum[tw, 7] += m
                         if (role & 3) != WG_IN:
                             _wedge_watch(x, v, r, tools, stat)

@@ -303,9 +303,10 @@ def build_parser() -> argparse.ArgumentParser:
         "validate-physics", help="run a physics validation case against its analytic reference",
         description="Run a validation case (blade_cut, passive_wall, column_collapse, repose, vertical_cut, "
                     "critical_height) and write DIR/metrics.json next to the run folder DIR/run/; `all` runs the "
-                    "gate set and writes the report (docs/validation.md and its plots); `resolution` runs the study "
-                    "at operating resolution (docs/resolution.md: blade convergence, coarse gates, critical "
-                    "heights).")
+                    "gate set and, at the default resolution, the study at operating resolution after it (into "
+                    "OUT/resolution/), and writes the report (docs/validation.md and its plots); `resolution` runs "
+                    "the study alone (docs/resolution.md: blade convergence, the gates at 4 and 8 grains across, "
+                    "critical heights, coarse heaps and columns).")
     physics.add_argument("case", metavar="CASE", help="blade_cut | passive_wall | column_collapse | repose | "
                                                       "vertical_cut | critical_height | all | resolution")
     physics.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",

@@ -38,6 +38,9 @@ MORTON_TABLE_MAX = 1 << 21
 # 18: soil substep t_c / 10 (was 15), IEEE arithmetic; 17: a shifted bed keeps its masses and contacts; 16: a larger
 # cell hash table, sleeping blocks skipped
 SOLVER_VERSION = 18
+# the soil wedge's model (tools' cutting_edge), recorded beside it: a wedged run of another is not reused. 2: the layer
+# beyond a plate's failure plane takes the plane's reaction only while it moves slower than the wedge
+WEDGE_VERSION = 2
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 # Frozen soil (soil.sleep): a full rebuild moves the particles that are asleep, farther than FREEZE_MARGIN beyond
@@ -408,7 +411,8 @@ class DemSoil:
     def describe(self) -> dict:
         """The manifest's soil block: solver, parameters, the settled bed's packing."""
         packing = self.bed_packing
-        return {"solver": self.name, "solver_version": self.version, "sleep": self.sleep, "micro": asdict(self.micro),
+        return {"solver": self.name, "solver_version": self.version, "wedge_version": WEDGE_VERSION, "sleep": self.sleep,
+                "micro": asdict(self.micro),
                 "bed_packing": packing, "soil_dt": self.dt,
                 "solid_density_effective": self.micro.bulk_density / packing if packing else None}
 

@@ -326,7 +326,7 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
         return metrics
 
     monkeypatch.setattr(report, "run_case", fake_run_case)
-    monkeypatch.setattr(report, "write_report", lambda results, path, command, not_run=(): path)
+    monkeypatch.setattr(report, "write_report", lambda results, path, command, not_run=(), study=None: path)
     monkeypatch.setattr(cases, "measure", lambda case, run_dir, p, geo: dict(metric="x", unit="1", measured=1.0,
                                                                            reference=1.0, tolerance=0.1, gate="g"))
     labels = [label for label, _, _ in report.gate_set()]
@@ -349,6 +349,38 @@ def test_resume_reruns_only_what_changed(tmp_path, monkeypatch):
     ran.clear()
     report.run_all("coarse", tmp_path, tmp_path / "v.md", resume=False)
     assert ran == labels  # without --resume every gate runs
+
+
+def test_a_wedged_run_of_another_wedge_model_is_run_again(tmp_path, monkeypatch):
+    """--resume keeps a run with the soil wedge only when the wedge's model (WEDGE_VERSION, in the manifest) is
+    today's; a run without the wedge is kept whatever its manifest says of the wedge."""
+    import json
+
+    from opera_taichi.dem_soil import WEDGE_VERSION
+
+    monkeypatch.setattr(cases, "measure", lambda case, run_dir, p, geo: dict(metric="x", unit="1", measured=1.0,
+                                                                           reference=1.0, tolerance=0.1, gate="g"))
+
+    def finished(label, params, wedge_version):
+        out = tmp_path / label
+        sets, _ = cases.build_overrides("passive_wall", cases.parse_params("passive_wall", params), "coarse",
+                                        work_dir=out)
+        manifest = _finished_manifest("passive_wall", sets)
+        if wedge_version is not None:
+            manifest["soil"]["wedge_version"] = wedge_version
+        (out / "run").mkdir(parents=True, exist_ok=True)
+        (out / "run" / "manifest.json").write_text(json.dumps(manifest))
+        (out / "metrics.json").write_text(json.dumps(dict(
+            case="passive_wall", metric="x", unit="1", measured=1.0, reference=1.0, relative_error=0.0, passed=True,
+            gate="g", parameters={}, resolution="coarse", particles=1, wall_time_s=1.0, run_dir=str(out / "run"),
+            overrides=sets)))
+        return cases.finished_metrics("passive_wall", params, "coarse", out)
+
+    wedge = {"height": "0.3", "wedge": "1"}
+    assert finished("now", wedge, WEDGE_VERSION) is not None
+    assert finished("older", wedge, WEDGE_VERSION - 1) is None
+    assert finished("unrecorded", wedge, None) is None   # made before the wedge's model was recorded: version 1
+    assert finished("grains", {"height": "0.3"}, None) is not None
 
 
 def test_report_only_runs_nothing_and_lists_the_gates_without_a_run(tmp_path, monkeypatch):

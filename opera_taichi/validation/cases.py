@@ -731,7 +731,7 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
     make now (same overrides: parameters, resolution, geometry; the same micro-parameters from the bulk-to-micro
     mapping and the same soil solver version); else None. The metric is measured again from the run folder, so a
     change in how a metric is read needs no new simulation."""
-    from ..dem_soil import SOLVER_VERSION
+    from ..dem_soil import SOLVER_VERSION, WEDGE_VERSION
     from ..scene import load_scene
     from ..model import soil_parameters
 
@@ -754,6 +754,8 @@ def finished_metrics(case: str, params, resolution: str, out_dir: str | Path) ->
     same = (metrics.get("case") == case and metrics.get("resolution") == resolution
             and same_overrides(metrics.get("overrides") or [], sets)
             and manifest.get("status") == "done" and manifest.get("soil", {}).get("solver_version") == SOLVER_VERSION)
+    if p.get("wedge"):  # (a run without a wedge is the same under any wedge model; before version 2 none was recorded)
+        same = same and manifest.get("soil", {}).get("wedge_version", 1) == WEDGE_VERSION
     if not same:
         return None
     _, micro = soil_parameters(load_scene(scene_file(case), sets).soil)
