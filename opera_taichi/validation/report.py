@@ -481,7 +481,7 @@ from the version in the header. The knobs, in the order to tune them:
    leaves a rounded top 4-6 deg flatter than its flanks). Above ~0.35 poured beds become very loose (solid
    fraction below 0.4) and weak; below ~0.12 heaps stay near 20 deg. The default's exponent comes from two
    heaps, each at the default and the coarse resolution (16 and 12 grain diameters across the poured column), as
-   a user who picks coarse grains still wants the heap: sand (33 deg) stands at 32.4 / 31.9 deg with 0.3. Glass
+   a user who picks coarse grains still wants the heap: sand (33 deg) stands at 33.3 / 31.9 deg with 0.3. Glass
    beads (22 deg) stood at 20.7 / 19.5 deg with the exponent 1.75 (0.131), the coarse heap outside its 22 +- 2 deg
    band (the study at operating resolution, 2026-11-27), and at 21.8 / 21.8 deg with 0.1405 (one run each,
    `validate-physics repose --param preset=glass_beads --param rolling_resistance=0.1405 --resolution

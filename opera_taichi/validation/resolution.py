@@ -214,7 +214,7 @@ def _verdict(g: dict) -> str:
 def study_section(results: dict[str, dict], gates: list[dict], plot_dir: Path, level: int) -> list[str]:
     """The study's tables and plot as markdown lines, its headings at `level` (# count); the plot goes in plot_dir."""
     h = "#" * level
-    lines = ["The gate set above is calibrated at 20 grains across the blade's cut; the main job digs at about 3 "
+    lines = ["The default gate set is calibrated at 20 grains across the blade's cut; the main job digs at about 3 "
              "(8 cm grains, a 0.5 m cut). This study runs the plane-strain blade, the wall, the vertical cut, the "
              "column collapses and the heaps at the grain sizes people run and compares them with the same "
              "references: the earthmoving equation (FEE), Rankine, Culmann, Lube / Lajeunesse and the repose "
