@@ -1,7 +1,8 @@
 """The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
 
     python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
-                                  [--wedge off|on|both] [--duration 25] [--repeat 1] [--spin-wait]
+                                  [--wedge off|on|both] [--duration 25] [--repeat 1]
+                                  [--spin-wait auto|on|off]
 
 For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
 `--site` adds scenes/zx120_site.yaml (the same dig in a 20 m x 20 m x 1 m bed) at 8 cm, and with the 8 cm main job
@@ -18,9 +19,9 @@ row without and with it.
 
 `--arch cuda` runs the soil in its GPU layout (one thread per grain; docs/performance.md).
 `--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
-host's speed drifts by 10% from run to run). `--spin-wait` runs with sim.spin_wait (the other cores kept running
-while the soil steps; docs/performance.md). Report the host: `lscpu | grep 'Model name'` and whether other work
-shared it.
+host's speed drifts by 10% from run to run). `--spin-wait` sets sim.spin_wait (the other cores kept
+running while the soil steps; docs/performance.md): `auto`, the scenes' default, turns it on where idle CPUs halt
+at once. Report the host: `lscpu | grep 'Model name'` and whether other work shared it.
 """
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ from bench_args import at_least, host_line  # noqa: E402  (beside this script)
 import numpy as np  # noqa: E402
 
 from opera_taichi.observers import Observer  # noqa: E402
+from opera_taichi.spin_wait import wanted  # noqa: E402
 
 BUCKET_WIDTH = 0.9   # m, the ZX120 bucket's cutting edge
 CUT_DEPTH = 0.5      # m, the dig path's depth
@@ -67,7 +69,7 @@ def fee_draft(model) -> float:
                              cohesion=bulk.cohesion).draft
 
 
-def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float, spin_wait: bool = False,
+def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float, spin_wait: str = "auto",
         wedge: bool = False) -> dict:
     from opera_taichi.model import build_model
     from opera_taichi.recorders import read_csv_columns
@@ -75,7 +77,7 @@ def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float
     from opera_taichi.scene import load_scene
 
     sets = [f"soil.overrides.radius={radius}", f"soil.sleep={str(sleep).lower()}", "output.plots=false",
-            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={str(spin_wait).lower()}",
+            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={spin_wait}",
             f"machine.soil_wedge={str(wedge).lower()}"]
     scene = load_scene(scene_path, sets)
     awake = AwakeCount()
@@ -123,7 +125,8 @@ def main() -> int:
     parser.add_argument("--duration", type=positive, default=25.0)
     parser.add_argument("--repeat", type=at_least(1, int, "a whole number"), default=1,
                         help="runs per row: the median RTF and its range")
-    parser.add_argument("--spin-wait", action="store_true", help="sim.spin_wait: keep the other cores running")
+    parser.add_argument("--spin-wait", choices=("auto", "on", "off"), default="auto",
+                        help="sim.spin_wait: keep the other cores running while the soil steps")
     parser.add_argument("--wedge", choices=("off", "on", "both"), default="off",
                         help="machine.soil_wedge: cut with the soil wedge at the bucket's edge")
     args = parser.parse_args()
@@ -133,8 +136,8 @@ def main() -> int:
     if args.site:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
     print(host_line() + "\n")
-    if args.spin_wait:
-        print("sim.spin_wait on\n")
+    spin = {"auto": "auto", "on": "true", "off": "false"}[args.spin_wait]
+    print(f"sim.spin_wait {args.spin_wait}: {'on' if wanted(spin) else 'off'} here\n")
     print("| scene | radius m | sleep | wedge | particles | awake (mean) | RTF | RTF range | M particle-steps/s "
           "| draft kN (8-16 s) | FEE kN | draft/FEE | held kg |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -142,7 +145,7 @@ def main() -> int:
     for path, radius in runs:
         for sleep in sleeps:
             for wedge in wedges:
-                tries = sorted((one(path, radius, sleep, args.arch, args.duration, args.spin_wait, wedge)
+                tries = sorted((one(path, radius, sleep, args.arch, args.duration, spin, wedge)
                                 for _ in range(args.repeat)),
                                key=lambda row: row["rtf"])
                 r = tries[len(tries) // 2]  # the median run (the upper one of an even count)

@@ -35,7 +35,7 @@ class Simulation:
     Taichi is started once (backend.init_taichi)."""
 
     def __init__(self, model: Model, arch: str = "cpu", *, build_beds: bool = True, quiet: bool = False,
-                 on_settle=None, spin_wait: bool = False):
+                 on_settle=None, spin_wait: bool | str = False):
         self.model = model
         self.quiet = quiet
         self.arch = None
@@ -87,10 +87,10 @@ class Simulation:
             # (machine, link) of each machine-bound tool, in soil tool order; standalone tools follow
             self._bound = [(self.machines[b.owner], b.link) for b in model.bindings if b.owner is not None]
             self._push_tool_states()
-            if spin_wait and self.arch in ("x64", "arm64"):  # (sim.spin_wait; a GPU's threads are not the pool's)
-                import taichi as ti
+            from .spin_wait import spin_wait as helpers, wanted
 
-                from .spin_wait import spin_wait as helpers
+            if self.arch in ("x64", "arm64") and wanted(spin_wait):  # (a GPU's threads are not the pool's)
+                import taichi as ti
 
                 self._spin = helpers(int(ti.lang.impl.current_cfg().cpu_max_num_threads))
             warm_up = getattr(self.soil, "warm_up", None)  # (optional for a solver: compiles, runs nothing)

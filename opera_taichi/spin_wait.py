@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 SPIN_FOR = 0.2  # s a helper spins after the last step before it sleeps (OpenMP's KMP_BLOCKTIME default)
 _DEADLINE = struct.Struct("d")  # time.monotonic() up to which the helpers spin, in a shared page
@@ -65,6 +66,25 @@ class SpinWait:
 
 
 _shared: SpinWait | None = None
+
+
+def idle_cpus_halt_at_once(sys_root: str | Path = "/sys") -> bool:
+    """Whether an idle CPU here halts without polling first: a VM guest whose cpuidle driver is `haltpoll` with
+    `guest_halt_poll_ns` 0 (the Firecracker VM of docs/performance.md), where a woken thread starts 0.1-0.3 ms late.
+    With polling on (the driver's default, 200 us) or on bare metal, a thread woken between two loops finds its CPU
+    still running or in a shallow state: the helpers would only burn time there."""
+    root = Path(sys_root)
+    try:
+        driver = (root / "devices/system/cpu/cpuidle/current_driver").read_text().strip()
+        poll_ns = int((root / "module/haltpoll/parameters/guest_halt_poll_ns").read_text())
+    except (OSError, ValueError):
+        return False
+    return driver == "haltpoll" and poll_ns == 0
+
+
+def wanted(setting: bool | str) -> bool:
+    """sim.spin_wait's true / false, or auto: on where idle CPUs halt at once."""
+    return idle_cpus_halt_at_once() if setting == "auto" else bool(setting)
 
 
 def helpers_wanted(threads: int) -> int:

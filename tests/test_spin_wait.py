@@ -1,6 +1,7 @@
 """sim.spin_wait: helper processes keep the other cores running while a simulation steps.
 
 - a run with it gives the same bits as one without, and its manifest says how many helpers ran;
+- `auto` turns it on exactly where idle CPUs halt at once (the haltpoll cpuidle driver with polling off);
 - a helper spins only while it is touched, naps after SPIN_FOR, and leaves when its parent dies, even by SIGKILL.
 """
 import json
@@ -58,7 +59,7 @@ pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists() or (os.cpu_
 
 def test_a_run_with_spin_wait_gives_the_same_bits_and_leaves_no_helper_behind(tmp_path):
     outs = {}
-    for flag in ("false", "true"):
+    for flag in ("false", "true", "auto"):
         out = tmp_path / flag
         proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "run", BLADE, "--out", str(out),
                                  *SHORT_BLADE, "--set", f"sim.spin_wait={flag}"], cwd=ROOT)
@@ -66,9 +67,33 @@ def test_a_run_with_spin_wait_gives_the_same_bits_and_leaves_no_helper_behind(tm
         assert _helpers_of(proc.pid) == []  # closed at exit, not left spinning
         outs[flag] = out
     helpers = {flag: json.loads((out / "manifest.json").read_text())["spin_wait_helpers"] for flag, out in outs.items()}
-    assert helpers == {"false": 0, "true": spin_wait.helpers_wanted(json.loads(
-        (outs["true"] / "manifest.json").read_text())["cpu_threads"])} and helpers["true"] >= 1
-    assert (outs["false"] / "tool_wrench.csv").read_bytes() == (outs["true"] / "tool_wrench.csv").read_bytes()
+    wanted = spin_wait.helpers_wanted(json.loads((outs["true"] / "manifest.json").read_text())["cpu_threads"])
+    assert helpers == {"false": 0, "true": wanted, "auto": wanted if spin_wait.idle_cpus_halt_at_once() else 0}
+    assert helpers["true"] >= 1
+    wrenches = {(out / "tool_wrench.csv").read_bytes() for out in outs.values()}
+    assert len(wrenches) == 1
+
+
+def _sysfs(root: Path, driver: str | None, poll_ns: str | None) -> Path:
+    if driver is not None:
+        (root / "devices/system/cpu/cpuidle").mkdir(parents=True)
+        (root / "devices/system/cpu/cpuidle/current_driver").write_text(driver + "\n")
+    if poll_ns is not None:
+        (root / "module/haltpoll/parameters").mkdir(parents=True)
+        (root / "module/haltpoll/parameters/guest_halt_poll_ns").write_text(poll_ns + "\n")
+    return root
+
+
+@pytest.mark.parametrize("driver, poll_ns, halts", [
+    ("haltpoll", "0", True),             # the Firecracker VM measured: auto turns the helpers on
+    ("haltpoll", "200000", False),       # the driver's default: it polls 200 us before it halts
+    ("intel_idle", None, False),         # bare metal
+    (None, None, False),                 # no cpuidle at all (a container without /sys, another OS)
+    ("haltpoll", None, False),           # the driver's parameters unreadable: not assumed
+    ("haltpoll", "garbage", False),
+])
+def test_auto_spins_only_where_idle_cpus_halt_at_once(tmp_path, driver, poll_ns, halts):
+    assert spin_wait.idle_cpus_halt_at_once(_sysfs(tmp_path, driver, poll_ns)) is halts
 
 
 def _always(pid: int, state: str) -> bool:
@@ -106,8 +131,9 @@ def test_a_helper_spins_while_touched_naps_after_and_leaves_when_its_parent_is_k
             parent.wait()
 
 
-def test_spin_wait_is_a_yes_or_no(tmp_path):
+def test_spin_wait_is_yes_no_or_auto(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "cli.py"), "run", BLADE, "--out", str(tmp_path / "bad"),
                            *SHORT_BLADE, "--set", "sim.spin_wait=2"], cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 2
-    assert "sim.spin_wait" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "sim.spin_wait" in proc.stderr and "true, false or auto" in proc.stderr, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr

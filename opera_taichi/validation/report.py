@@ -155,6 +155,21 @@ from the version in the header. The knobs, in the order to tune them:
    and blades. The friction pour is loose (solid fraction 0.45-0.50) and contractive: pushed by a wall or a blade
    it compacts and keeps hardening slowly instead of failing at a peak (after the blade a90 d0.3 cut: solid
    fraction 0.54-0.56 just ahead of the blade, 0.44-0.48 in the untouched bed at the same depths).
+   **Thin beds keep the pour's lattice.** The pour is a cubic lattice jittered by 3% of its spacing, and a bed a
+   few grains deep lands as it was poured, each grain on the one beneath (grains above the floor with a neighbour
+   within 0.15 diameters of straight below: 71-87% in the coarse sand column at a = 0.5, 4 grains tall; 94% and
+   73% in the main job's beds at 16 and 12 cm, solid fraction 0.37 and 0.40; 15% at 8 cm; 5-15% in beds 15
+   grains deep or more, 2-9% in the random packings below). Such a stack stands: that column spread 0.29 / 0.63 / 0.00 over seeds 0-2 (0.00 / 0.22
+   / 0.61 over 3-5). Pours that break it, tried in a scratch copy on the coarse column at a = 0.5 and the main
+   job's 16 and 12 cm beds: the odd layers shifted by half a spacing (stacked 12-29%, but solid fraction 0.53-0.57
+   in every bed, the coarse a = 2 column's too: denser, so stronger, see above; run-out 0.51 / 0.49 / 0.45 / 0.60
+   / 0.57 / 0.60 over seeds 0-5); a spacing of 1.15 or 1.3 diameters with the jitter filling it (stacked 2-9%,
+   solid fraction 0.41-0.46; at 1.3 the pour stands twice as tall, more than the cases' domains hold; run-out
+   0.58 / 0.43 / 0.37 and 0.42 / 0.53 / 0.52 / 0.47 / 0.42 / 0.41); a random sideways start of 0.5 or 1.5
+   sqrt(g d) (stacked 3-13%, solid fraction 0.41-0.47, 0.48-0.49 in the coarse a = 2 column; run-out 0.46 / 0.35
+   / 0.67 and 0.62 / 0.42 / 0.55 over seeds 0-2). A random packing takes the stacks away but leaves the 4-grain
+   column at 0.35-0.67, across the band's lower edge (0.51): it needs the random pour and a resolution effect not
+   yet found, and a new pour re-settles every bed (the whole report again).
    **Boundaries.** The oracles assume soil below the wall's base and the blade's edge. With the (rough) pit floor
    at the wall's base the floor carried the wedge's heel (1.50 x Rankine at 0.2 H, still rising); with a smooth
    floor there the whole loose bed slid against the far pit wall. The cases put the pit floor H below the wall's
