@@ -5,7 +5,8 @@ On a virtual machine whose idle vCPU halts at once (the 2-vCPU cloud VM of docs/
 there starts 0.1-0.3 ms late, which is as long as a loop's work in a dig at 5 cm. A helper process per
 other core, at the lowest priority, spins while the simulation steps and for SPIN_FOR after its last step, so the
 vCPU is running when Taichi's thread wakes; anything else that wants the core preempts it. OpenMP runtimes wait for
-work the same way (KMP_BLOCKTIME). The helpers only burn time: results do not depend on them.
+work the same way (KMP_BLOCKTIME). The helpers only burn time: results do not depend on them. `auto`, the
+scenes' default, starts them only where idle CPUs halt at once (idle_cpus_halt_at_once).
 """
 from __future__ import annotations
 
