@@ -307,8 +307,8 @@ class SimConfig(_Model):
     spin_wait: Annotated[Union[bool, Literal["auto"]], BeforeValidator(_bool_or_auto)] = Field(
         "auto", description="On the CPU, keep the other cores running while the soil steps (a lowest-priority helper "
                             "process per other core spins; docs/performance.md): faster where an idle core halts "
-                            "at once, as on the 2-vCPU cloud VM measured (5-17%), at the cost of those cores' idle "
-                            "time. `auto`: on where the CPUs' idle driver halts at once (Linux's `haltpoll` with "
+                            "at once, as on the 2-vCPU cloud VM measured (1-16% by grain size), at the cost of "
+                            "those cores' idle time. `auto`: on where the CPUs' idle driver halts at once (Linux's `haltpoll` with "
                             "`guest_halt_poll_ns` 0), off elsewhere. Same results.")
     seed: Annotated[int, BeforeValidator(_NumberRule(ge=0, le=2**32 - 1, integer=True))] = Field(
         0, description="Random seed (bed packing); same seed, backend and thread count give the same run.")
