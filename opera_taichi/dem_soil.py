@@ -62,10 +62,38 @@ CRUSH_GAP = 1.0            # grain diameters: a divergence with a tool closing t
 SLEEP_AFTER = 0.05         # s a particle must stay quiet before it sleeps (soil.sleep)
 SLEEP_SPEED = 0.02         # x sqrt(g R): the quiet speed (what a settled bed counts as at rest)
 POUR_GAP = 1.03            # lattice spacing = 2 r_max * POUR_GAP
+STACKED_WARN = 0.3         # a settled bed with more of its grains straight on the one beneath is a cubic stack: warn
 # Beds are poured with the soil's own friction and rolling resistance (smooth pit walls, no cohesion): a loose,
 # as-deposited packing whose strength is near the critical state. A frictionless pour packs densely (~0.6) and
 # that bed is several times too strong against walls and blades (peak dilatancy; see soil.py).
 POUR_FRICTIONLESS = False
+# Each poured grain's random sideways start, x sqrt(g d) (0: the lattice falls straight). It breaks the stacks of thin
+# beds but packs deep beds denser, whose walls then read 20-30% stronger: it waits for the mapping to be recalibrated
+# on such beds (docs/validation.md, calibration note 1).
+POUR_SCATTER = 0.0
+
+
+def stacked_fraction(positions: np.ndarray, radii: np.ndarray, floors: np.ndarray) -> float | None:
+    """Share of the grains above a bed's bottom layer that rest straight on a grain beneath them: a neighbour within
+    1.1 contact distances whose centre lies within 0.15 contact distances of the vertical below. About 1 in a cubic
+    stack, 0.02-0.15 in a random packing. floors: the bed floor under each grain. None when no grain lies above the
+    bottom layer."""
+    from scipy.spatial import cKDTree
+
+    pos = np.asarray(positions, float).reshape(-1, 3)
+    rad = np.asarray(radii, float).reshape(-1)
+    upper = pos[:, 2] > np.asarray(floors, float) + 2.0 * rad  # (a bottom-layer grain rests on the floor)
+    if len(pos) < 2 or not np.any(upper):
+        return None
+    k = min(12, len(pos))
+    dist, j = cKDTree(pos).query(pos[upper], k=k, distance_upper_bound=2.2 * rad.max())
+    found = np.isfinite(dist)
+    j = np.where(found, j, 0)
+    contact = rad[upper][:, None] + rad[j]
+    offset = pos[j] - pos[upper][:, None, :]
+    beneath = (found & (dist > 0.0) & (dist < 1.1 * contact) & (offset[..., 2] < 0.0)
+               & (np.hypot(offset[..., 0], offset[..., 1]) < 0.15 * contact))
+    return float(np.mean(np.any(beneath, axis=1)))
 
 
 def _vec3(value, key: str) -> np.ndarray:
@@ -311,6 +339,7 @@ class DemSoil:
         self.settle_speed = 0.0  # the fastest grain at the end of settling when the beds did not come to rest
         self.warnings: list[str] = []
         self.bed_packing: float | None = None  # solid fraction of the settled beds (None: no beds)
+        self.bed_stacked: float | None = None  # share of their grains resting straight on the one beneath
         self._tool_names: list[str] = []
         self._tool_vertices: list[np.ndarray] = []  # each tool's mesh vertices, link frame (its cutting edge's checks)
         self._sdf_blocks: list[np.ndarray] = []
@@ -413,7 +442,7 @@ class DemSoil:
         packing = self.bed_packing
         return {"solver": self.name, "solver_version": self.version, "wedge_version": WEDGE_VERSION, "sleep": self.sleep,
                 "micro": asdict(self.micro),
-                "bed_packing": packing, "soil_dt": self.dt,
+                "bed_packing": packing, "bed_stacked": self.bed_stacked, "soil_dt": self.dt,
                 "solid_density_effective": self.micro.bulk_density / packing if packing else None}
 
     _EXACT = ("kin", "prop", "flags", "x_ref", "surf_id", "surf_h", "nbr_off", "nbr_j", "nbr_h", "rev_off", "rev_pos",
@@ -441,6 +470,7 @@ class DemSoil:
                                             float(self._slots_at_try)]])
         out["time"] = np.array(self.time, dtype=np.float64)
         out["bed_packing"] = np.array(np.nan if self.bed_packing is None else self.bed_packing)
+        out["bed_stacked"] = np.array(np.nan if self.bed_stacked is None else self.bed_stacked)
         return out
 
     def set_state(self, state: dict[str, np.ndarray]) -> None:
@@ -483,6 +513,8 @@ class DemSoil:
         self.time = float(state["time"])
         packing = float(state["bed_packing"])
         self.bed_packing = None if np.isnan(packing) else packing
+        stacked = float(state.get("bed_stacked", np.nan))  # (a state written before it was measured: unknown)
+        self.bed_stacked = None if np.isnan(stacked) else stacked
         spheres = self._tools_host[:, dem.T_BS:dem.T_BS + 4].copy()  # (the registered tools', not the state's)
         self._tools_host[:] = state["tools_host"]
         self._tools_host[:, dem.T_BS:dem.T_BS + 4] = spheres
@@ -865,7 +897,7 @@ class DemSoil:
         spec = dict(version=SOLVER_VERSION, micro=micro, beds=[(a.tolist(), b.tolist()) for a, b in self.beds],
                     domain=(self.domain_min.tolist(), self.domain_max.tolist()), seed=self.seed, dt=self.dt,
                     gravity=self.gravity.tolist(), settle_time=settle_time, frictionless=POUR_FRICTIONLESS,
-                    compiled_for=compiled_for())
+                    pour=dict(gap=POUR_GAP, scatter=POUR_SCATTER), compiled_for=compiled_for())
         if self.surface is not None:  # a bed filled to a scanned surface: keyed by that surface
             spec["surface"] = hashlib.sha256(b"".join(np.ascontiguousarray(a, np.float64).tobytes()
                                                       for a in self.surface)).hexdigest()
@@ -878,12 +910,13 @@ class DemSoil:
                 self._load_state(path)
                 self.bed_packing = self._measure_packing()
                 self._check_settled(settle_time)
+                self._check_stacking()
                 self._start_asleep()
                 return
             except (OSError, KeyError, ValueError):
                 pass  # unreadable cache entry: settle again
-        pos, rad = self._pour_lattice()
-        self.set_particles(pos, radii=rad)
+        pos, rad, vel = self._pour_lattice()
+        self.set_particles(pos, vel, radii=rad)
         self._settle(settle_time)
         state = self._state_arrays()
         if self.use_cache:
@@ -896,6 +929,7 @@ class DemSoil:
         self._set_state(state)
         self.bed_packing = self._measure_packing()  # measured as a run from the cache measures it
         self._check_settled(settle_time)
+        self._check_stacking()
         self._start_asleep()
 
     def _start_asleep(self) -> None:
@@ -918,8 +952,25 @@ class DemSoil:
                                  f"the run, or with soil.sleep it starts asleep as it stands (grains still falling "
                                  f"hang until a tool or moving soil wakes them): raise soil.settle_time")
 
-    def _pour_lattice(self) -> tuple[np.ndarray, np.ndarray]:
-        """Jittered cubic lattice over each pit, tall enough that the settled bed overfills it a little."""
+    def _check_stacking(self) -> None:
+        """Measure how much of the settled beds stands as a cubic stack (stacked_fraction) and warn above
+        STACKED_WARN: a bed a few grains deep or across keeps the poured lattice (docs/validation.md, calibration
+        note 1)."""
+        parts = self.particles(("positions", "radii"))
+        pos, rad = parts["positions"], parts["radii"]
+        floors = self._bed_floors(pos)
+        inside = np.isfinite(floors)
+        self.bed_stacked = stacked_fraction(pos[inside], rad[inside], floors[inside])
+        if self.bed_stacked is not None and self.bed_stacked > STACKED_WARN:
+            self.warnings.append(
+                f"soil: {self.bed_stacked:.0%} of the settled bed's grains rest straight on the grain beneath, as the "
+                f"pour's cubic lattice stacked them (beds a few grains deep or across keep it): such a stack stands "
+                f"steeper and spreads less than loose soil (docs/validation.md, calibration note 1); finer grains "
+                f"(soil.overrides.radius) settle into a random packing")
+
+    def _pour_lattice(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jittered cubic lattice over each pit, tall enough that the settled bed overfills it a little: positions,
+        radii and velocities (at rest, or a random sideways start of POUR_SCATTER sqrt(g d))."""
         rng = np.random.default_rng(self.seed)
         r, r_max = self.micro.radius, self.r_max
         s = 2.0 * r_max * POUR_GAP
@@ -944,7 +995,12 @@ class DemSoil:
             positions.append(grid + jitter)
         pos = np.concatenate(positions)
         rad = r * (1.0 + self.micro.polydispersity * rng.uniform(-1.0, 1.0, len(pos)))
-        return pos, rad
+        vel = np.zeros_like(pos)
+        if POUR_SCATTER:  # (its own random stream: the lattice is the same with and without it)
+            heading = np.random.default_rng((self.seed, 1)).uniform(0.0, 2.0 * math.pi, len(pos))
+            speed = POUR_SCATTER * math.sqrt(GRAVITY * 2.0 * r)
+            vel[:, 0], vel[:, 1] = speed * np.cos(heading), speed * np.sin(heading)
+        return pos, rad, vel
 
     def _settle(self, settle_time: float) -> None:
         """Let the poured lattice fall and come to rest, trim it level with the bed tops, rest again."""
@@ -1012,14 +1068,19 @@ class DemSoil:
         flags = self._flags.to_numpy()[:self._n]
         pos = self._kin.to_numpy()[:self._n, 0]
         radii = self._prop.to_numpy()[:self._n, 0]
-        inside = np.zeros(len(pos), bool)
-        volume = 0.0
-        for b_min, b_max in self.beds:
-            in_plan = np.all((pos[:, :2] >= b_min[:2]) & (pos[:, :2] <= b_max[:2]), axis=1)
-            inside |= in_plan & (pos[:, 2] >= b_min[2]) & (pos[:, 2] <= self._tops(pos[:, :2], b_max))
-            volume += self._bed_volume(b_min, b_max)
+        inside = np.isfinite(self._bed_floors(pos))
+        volume = sum(self._bed_volume(b_min, b_max) for b_min, b_max in self.beds)
         solid = float(np.sum(4.0 / 3.0 * math.pi * radii[inside & (flags == 1)] ** 3))
         return solid / volume if solid > 0.0 and volume > 0.0 else None
+
+    def _bed_floors(self, pos: np.ndarray) -> np.ndarray:
+        """The floor of the bed each position (N, 3) is centred in (between its floor and its fill height), NaN
+        outside every bed."""
+        floors = np.full(len(pos), np.nan)
+        for b_min, b_max in self.beds:
+            in_plan = np.all((pos[:, :2] >= b_min[:2]) & (pos[:, :2] <= b_max[:2]), axis=1)
+            floors[in_plan & (pos[:, 2] >= b_min[2]) & (pos[:, 2] <= self._tops(pos[:, :2], b_max))] = b_min[2]
+        return floors
 
     def _match_bulk_density(self) -> None:
         """Scale the particle masses so the settled beds have the user's bulk density.

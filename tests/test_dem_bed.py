@@ -181,6 +181,59 @@ def test_a_bed_that_did_not_come_to_rest_says_so(tmp_path, monkeypatch):
     assert rested.settle_speed == 0.0 and rested.warnings == []
 
 
+def test_stacked_fraction_tells_a_cubic_stack_from_a_nested_or_random_packing():
+    from opera_taichi.dem_soil import stacked_fraction
+
+    r = 0.01
+    cubic = np.stack(np.meshgrid(*(2 * r * np.arange(6),) * 2, r + 2 * r * np.arange(5), indexing="ij"),
+                     -1).reshape(-1, 3)
+    floors = np.zeros(len(cubic))
+    assert stacked_fraction(cubic, np.full(len(cubic), r), floors) == 1.0
+    # every other layer shifted by half a spacing sits in the hollows of the one beneath: nothing straight on a grain
+    nested = np.concatenate([np.stack(np.meshgrid(*(2 * r * np.arange(6) + (k % 2) * r,) * 2, [r + k * r * 2 ** 0.5],
+                                                  indexing="ij"), -1).reshape(-1, 3) for k in range(5)])
+    assert stacked_fraction(nested, np.full(len(nested), r), floors) == 0.0
+    # the third of five layers moved sideways by 0.4 diameters: of the four above the floor's, the second stands
+    # beside the grains beneath it, the third beside those of the moved layer, the first and the fourth on them
+    moved = cubic.copy()
+    moved[np.isclose(moved[:, 2], 5 * r), 0] += 0.8 * r
+    assert stacked_fraction(moved, np.full(len(moved), r), floors) == pytest.approx(0.5, abs=0.05)
+    bottom = cubic[:, 2] < 2 * r
+    assert stacked_fraction(cubic[bottom], np.full(36, r), floors[bottom]) is None  # one layer: nothing above it
+
+
+def test_a_bed_poured_grain_on_grain_says_so(bed, tmp_path, monkeypatch):
+    """A pit 8 grains across and 4 deep keeps the pour's cubic lattice, each grain settled on the one beneath
+    (docs/validation.md, calibration note 1): the bed reports that share (the manifest's bed_stacked) and warns. The
+    module's pit, 10 grains across and also 4 deep, settles into a random packing and does not."""
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    d = 0.04
+    narrow = make_bed(pit=((0.0, 0.0, -4 * d), (8 * d, 8 * d, 0.0)), settle_time=2.0, seed=1)
+    assert narrow.bed_stacked > 0.4 and narrow.describe()["bed_stacked"] == narrow.bed_stacked
+    assert [w for w in narrow.warnings if "rest straight on the grain beneath" in w] == [
+        f"soil: {narrow.bed_stacked:.0%} of the settled bed's grains rest straight on the grain beneath, as the pour's "
+        "cubic lattice stacked them (beds a few grains deep or across keep it): such a stack stands steeper and "
+        "spreads less than loose soil (docs/validation.md, calibration note 1); finer grains "
+        "(soil.overrides.radius) settle into a random packing"]
+    assert bed.bed_stacked < 0.15 and bed.warnings == []
+
+
+def test_a_scattered_pour_breaks_the_stacks_of_a_narrow_pit(tmp_path, monkeypatch):
+    """dem_soil.POUR_SCATTER, the calibration's knob (off): the same pit poured with a random sideways start settles
+    into a random packing, cached under its own key."""
+    from opera_taichi import dem_soil
+
+    monkeypatch.setenv("OPERA_TAICHI_CACHE", str(tmp_path))
+    d = 0.04
+    pit = ((0.0, 0.0, -4 * d), (8 * d, 8 * d, 0.0))
+    monkeypatch.setattr(dem_soil, "POUR_SCATTER", 1.5)
+    scattered = make_bed(pit=pit, settle_time=2.0, seed=1)
+    assert scattered.bed_stacked < 0.2 and scattered.warnings == []
+    key = scattered._cache_key(2.0)
+    monkeypatch.setattr(dem_soil, "POUR_SCATTER", 0.0)
+    assert scattered._cache_key(2.0) != key
+
+
 def test_a_shifted_bed_is_the_settled_bed_moved():
     # soil.bed_shift releases a settled block (vertical cut, column, heap): every grain keeps its mass, matched to the
     # bulk density, and its springs with the grains it touches; only the positions move
