@@ -188,7 +188,7 @@ from the version in the header. The knobs, in the order to tune them:
    wall reads 1.144 / 1.142 / 1.160 x Rankine (mean 1.149; at 0.2, 1.206 / 1.142 / 1.109: the beds pack denser
    still, 0.513 against 0.508), and the coarse columns pass, every one of the report's packings: 0.685 / 0.639 /
    0.624 at a = 0.5 (0.715 / 0.717 / 0.439 over seeds 3-5), 1.505 / 1.611 / 1.083 at a = 1, 2.933 at a = 2, a
-   run-out slope of about 1.1. But the coarse sand heap falls to 30.3 deg, under its band (31-35), and the glass
+   run-out slope of about 1.1; the blade a90 d0.3 at 20 across reads 1.045 x the FEE (1.110 on the lattice). But the coarse sand heap falls to 30.3 deg, under its band (31-35), and the glass
    beads' to 19.8 deg at 0.117 (the mapping's rule scaled to 0.25) and 20.1 at 0.135. The rolling resistance that
    lets the 4-grain column spread is less than what holds the heap. In between, 0.27 holds the heap (31.6 deg
    coarse, 32.6 at default) but the wall reads 1.282 / 1.280 / 1.209 (mean 1.257, as at 0.3) and the column
