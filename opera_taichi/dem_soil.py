@@ -35,9 +35,10 @@ from .tool_sdf import tool_sdf
 
 MORTON_TABLE_PER_PARTICLE = 16
 MORTON_TABLE_MAX = 1 << 21
-# 18: soil substep t_c / 10 (was 15), IEEE arithmetic; 17: a shifted bed keeps its masses and contacts; 16: a larger
+# 19: the beds' masses matched to the bulk density after levelling (they were 2-8% light); 18: soil substep t_c / 10
+# (was 15), IEEE arithmetic; 17: a shifted bed keeps its masses and contacts; 16: a larger
 # cell hash table, sleeping blocks skipped
-SOLVER_VERSION = 18
+SOLVER_VERSION = 19
 # the soil wedge's model (tools' cutting_edge), recorded beside it: a wedged run of another is not reused. 2: the layer
 # beyond a plate's failure plane takes the plane's reaction only while it moves slower than the wedge
 WEDGE_VERSION = 2
@@ -1028,9 +1029,11 @@ class DemSoil:
             [dem.P_MU, dem.P_MU_R, dem.P_MU_WALL, dem.P_COH_F]]
         self._set_prm(loose)
         self._run_until_quiet(max(0.2 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
-        self._match_bulk_density()  # before the rest of the settling, so the bed rests under its final weight
         self._set_prm(self._settle_parameters())
         self._trim_to_beds()
+        # on the grains kept (the levelled top packs looser), before the rest of the settling: the bed rests under
+        # its final weight
+        self._match_bulk_density()
         # a loose (friction-poured) bed keeps creeping for a while after levelling: rest it until quiet
         self._run_until_quiet(max(0.5 * settle_time, 1e-3), 0.02, quiet, SETTLE_DAMPING)
         speed = self._run_until_quiet(max(0.3 * settle_time, 1e-3), 0.0, quiet, 0.0)
@@ -1087,8 +1090,8 @@ class DemSoil:
 
         How densely spheres pack depends on their friction and rolling resistance (a poured bed of sand-like
         spheres packs at ~0.45-0.55 here, not the 0.6 that SoilMicro.solid_density assumes), so the solid
-        density is fixed from the measured packing: solid volume of the particles centred in the beds over the
-        beds' volume."""
+        density is fixed from the measured packing of the levelled beds: solid volume of the particles centred in
+        the beds over the beds' volume (the grains' masses over that volume are then the bulk density)."""
         self.bed_packing = self._measure_packing()
         if not self.bed_packing:
             return

@@ -78,10 +78,11 @@ def test_a_held_load_weighs_on_the_bucket_what_it_weighs(tmp_path):
     t, fz = np.asarray(wrench["t"]), np.asarray(wrench["fz"])
     holding = t >= 26.0
     assert held_kg > 100.0
-    # the load's weight, all along the hold: the soil in the bucket's hull and a few grains resting on the bucket
-    # outside it (+4.8% on this path with all the soil awake; +5.8% asleep), steady to a percent
+    # the load's weight, all along the hold: the soil in the bucket's hull and the grains resting on the bucket
+    # outside it (0 to +6% by the path: +4.8% awake and +5.8% asleep on version 18's, +0.0% on version 19's), less
+    # up to 0.1% while the joints creep to rest; steady to a percent
     weight = held_kg * 9.81
-    assert np.all(-fz[holding] > weight) and np.all(-fz[holding] < 1.1 * weight), (fz[holding].min(), weight)
+    assert np.all(-fz[holding] > 0.99 * weight) and np.all(-fz[holding] < 1.1 * weight), (fz[holding].min(), weight)
     assert np.ptp(fz[holding]) < 0.01 * weight
     fx, fy = np.asarray(wrench["fx"])[holding], np.asarray(wrench["fy"])[holding]
     assert np.max(np.hypot(fx, fy)) < 0.01 * held_kg * 9.81
