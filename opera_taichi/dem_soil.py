@@ -1128,9 +1128,11 @@ class DemSoil:
         if self.surface is None:
             return float(np.prod(b_max - b_min))
         x, y, z = self.surface
-        inside = ((x >= b_min[0]) & (x <= b_max[0]))[:, None] & ((y >= b_min[1]) & (y <= b_max[1]))[None, :]
-        cell = abs((x[1] - x[0]) * (y[1] - y[0]))
-        return float(np.nansum(z[inside] - b_min[2]) * cell)
+        # each node stands for its cell, as much of it as lies over the footprint (a node on the edge: half)
+        dx, dy = abs(x[1] - x[0]), abs(y[1] - y[0])
+        wx = np.clip(np.minimum(x + dx / 2, b_max[0]) - np.maximum(x - dx / 2, b_min[0]), 0.0, None)
+        wy = np.clip(np.minimum(y + dy / 2, b_max[1]) - np.maximum(y - dy / 2, b_min[1]), 0.0, None)
+        return float(np.nansum((z - b_min[2]) * wx[:, None] * wy[None, :]))
 
     def _trim_to_beds(self) -> None:
         """Remove particles centred above their bed's top less half a radius: each bed is full and level (or follows
