@@ -35,9 +35,9 @@ from .tool_sdf import tool_sdf
 
 MORTON_TABLE_PER_PARTICLE = 16
 MORTON_TABLE_MAX = 1 << 21
-# 19: the beds' masses matched to the bulk density after levelling (they were 2-8% light); 18: soil substep t_c / 10
-# (was 15), IEEE arithmetic; 17: a shifted bed keeps its masses and contacts; 16: a larger
-# cell hash table, sleeping blocks skipped
+# 19: the beds' masses matched to the bulk density after levelling (they were 2-8% light), a scanned bed's volume
+# over its footprint alone (4% heavy in a test); 18: soil substep t_c / 10 (was 15), IEEE arithmetic; 17: a shifted
+# bed keeps its masses and contacts; 16: a larger cell hash table, sleeping blocks skipped
 SOLVER_VERSION = 19
 # the soil wedge's model (tools' cutting_edge), recorded beside it: a wedged run of another is not reused. 2: the layer
 # beyond a plate's failure plane takes the plane's reaction only while it moves slower than the wedge
