@@ -26,9 +26,11 @@ JOINTS = ["swing_joint", "boom_joint", "arm_joint", "bucket_joint"]
 # 24 cm grains (~1,000 particles) and the dig path of the scene pressed into 9 s (approach 1.5 s, enter 3 s, drag
 # to 6 s, curl to 7.5 s, lift to 9 s), so the bucket cuts, loads and lifts soil in ~30 s of wall time. (With 32 cm
 # grains the load was one or two grains, and whether any stayed in the bucket turned on round-off: none did with
-# soil.sleep.) The entry is made steep, the bucket plunging with its bottom plate flat on the soil, so the boom and
-# the arm reach their torque limits (the scene's own path stays within them: tests/test_excavation.py).
+# soil.sleep.) Its start and entry are the scene's before 2026-11-28 (docs/dig_path.md): away from the rest pose, and
+# a plunge with the bucket's bottom plate flat on the soil, so the boom and the arm reach their speed and torque
+# limits (the scene's own path stays within them: tests/test_excavation.py).
 OVERRIDES = ["soil.overrides.radius=0.12", "sim.duration=9", "output.plots=false",
+             "motion.waypoints.0.xyz=[6.5, -0.164, 1.0]", "motion.waypoints.0.bucket_angle_deg=100",
              "motion.waypoints.1.xyz=[6.5, -0.164, 0.1]", "motion.waypoints.1.bucket_angle_deg=105",
              "motion.waypoints.2.xyz=[6.2, -0.164, -0.5]", "motion.waypoints.2.bucket_angle_deg=112"] + \
     [f"motion.waypoints.{i}.t={t}" for i, t in enumerate((0.0, 1.5, 3.0, 6.0, 7.5, 9.0))]
