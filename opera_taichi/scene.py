@@ -483,7 +483,7 @@ class MachineConfig(_Model):
     soil_wedge: Bool = Field(False, description="Cut with the soil wedge at the machine's cutting edges (the machine "
                              "config's `cutting_edges`: the earthmoving equation's push where the edge meets the "
                              "soil, at any grain size). Off by default for now: on the main job it takes in less "
-                             "soil than the grains and costs about a fifth of the speed (docs/validation.md); "
+                             "soil than the grains (86%) and costs a tenth of the speed (docs/dig_path.md); "
                              "false: the soil pushes back grain by grain.")
 
     @model_validator(mode="after")
