@@ -4,6 +4,7 @@ One full run (25 s simulated, ~4 min on 2 cores) at the scene's own resolution; 
 acceptance: bucket load at the end of the curl, trench depth along the dig path, soil mass conserved.
 """
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -98,10 +99,49 @@ def test_soil_mass_is_constant_over_the_excavation(run):
 
 @pytest.mark.slow
 def test_the_dig_path_stays_within_the_machines_torque_limits(run):
-    """The path is one the machine can follow in this soil: the bucket's bottom plate clear of the entry, the curl
-    about the pin. A path that presses the plate or the bowl into uncut soil pins the boom at its torque limit, and
-    the bucket's force is then the machine's, whatever the soil (the path before 2026-11-28: 32-48% of the run on
-    three seeds, 101-113 kN peaks on four soils; this one: 0%, 2.3% on gravel)."""
+    """The path is one the machine can follow in this soil. A path that presses the bucket's flat bottom or its bowl
+    into uncut soil pins the boom at its torque limit, and the bucket's force is then the machine's, whatever the soil
+    (docs/dig_path.md: 32-48% of the run on the earlier path; this one 0%)."""
     summary = json.loads((run / "summary.json").read_text())
     pinned = {joint: a["at_torque_limit_fraction"] for joint, a in summary["actuators"].items()}
     assert max(pinned.values()) < 0.05, pinned
+
+
+def _plate_elevation(kin, mesh, q) -> float:
+    """Degrees above the horizontal at which the bucket's outer bottom rises behind the edge, away from the machine:
+    the smallest elevation from the edge to the collision mesh 0.1-0.5 m behind it."""
+    verts = np.c_[mesh.vertices, np.ones(len(mesh.vertices))]
+    rel = (kin.link_pose(q, "bucket_link") @ verts.T).T[:, :3] - kin.tip_position(q)
+    dist = np.hypot(rel[:, 0], rel[:, 2])
+    behind = (dist > 0.1) & (dist < 0.5) & (rel[:, 0] > 0.0)
+    return float(np.degrees(np.arctan2(rel[behind, 2], rel[behind, 0])).min())
+
+
+def test_the_entry_keeps_the_buckets_flat_bottom_near_its_line():
+    """Along the path's entry (waypoints 1 -> 2) the edge goes down at most 20 deg more steeply than the bucket's bottom
+    plate rises behind it (the plate meets the ramp's soil at 6-18 deg), so the plate cuts in rather than bearing on
+    the soil like a footing. The earlier path's plunge (63 deg with the plate at 6 to -1 deg) fails this."""
+    from opera_taichi.kinematics import Kinematics
+    from opera_taichi.machine_description import load_machine
+    from opera_taichi.scene import load_scene
+
+    desc = load_machine("zx120")
+    kin, mesh = Kinematics(desc), desc.collision_meshes["bucket_link"]
+    scene = load_scene(SCENE)
+    wps = scene.motion.waypoints
+    q = dict(scene.machine.initial_joints)  # rad
+
+    def attack(a, b):
+        p0, p1 = np.asarray(a.xyz, float), np.asarray(b.xyz, float)
+        descent = math.degrees(math.atan2(p0[2] - p1[2], abs(p1[0] - p0[0])))
+        worst, guess = -90.0, dict(q)
+        for f in np.linspace(0.0, 1.0, 6):
+            guess = kin.solve_tip(p0 + f * (p1 - p0), a.bucket_angle + f * (b.bucket_angle - a.bucket_angle),
+                                  q_guess=guess)
+            worst = max(worst, descent - _plate_elevation(kin, mesh, guess))
+        return worst
+
+    assert attack(wps[1], wps[2]) < 20.0
+    plunge = [type(wps[1])(t=5.0, xyz=[6.5, -0.164, 0.1], bucket_angle_deg=105),
+              type(wps[2])(t=8.0, xyz=[6.2, -0.164, -0.5], bucket_angle_deg=112)]
+    assert attack(*plunge) > 50.0
