@@ -789,7 +789,12 @@ def _wedge_refresh(tools: ti.template(), t):
             if ti.atan2(u[2], -u.dot(h)) > WG_MIN_RAKE and tools[t, T_WG_TOP] > e[2] and \
                     (tools[t, T_WG_ENGAGED] > 0.0 or tools[t, T_WG_GAP] <= WG_TOUCH):
                 engaged = 1.0
-        v_w = f * (v_e.dot(n) / f.dot(n))  # along the plane, as fast into the soil as the face
+        # a plate's wedge slides along the failure plane, as fast into the soil as the face; at an opening the soil
+        # the edge meets moves with the edge and up the mouth at that speed, into the bucket (sliding along the
+        # plane, it shoved the soil ahead of the mouth: docs/dig_path.md)
+        v_w = f * (v_e.dot(n) / f.dot(n))
+        if tools[t, T_WG_ON] == WG_OPENING:
+            v_w = v_e + v_e.dot(n) * u
         for c in ti.static(range(3)):
             tools[t, T_WG_EW + c] = e[c]
             tools[t, T_WG_NW + c] = n[c]

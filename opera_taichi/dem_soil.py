@@ -40,8 +40,9 @@ MORTON_TABLE_MAX = 1 << 21
 # bed keeps its masses and contacts; 16: a larger cell hash table, sleeping blocks skipped
 SOLVER_VERSION = 19
 # the soil wedge's model (tools' cutting_edge), recorded beside it: a wedged run of another is not reused. 2: the layer
-# beyond a plate's failure plane takes the plane's reaction only while it moves slower than the wedge
-WEDGE_VERSION = 2
+# beyond a plate's failure plane takes the plane's reaction only while it moves slower than the wedge; 3: an opening's
+# wedge moves with its edge and up the mouth (a plate's is as in 2, bit for bit)
+WEDGE_VERSION = 3
 NEIGHBORS_PER_PARTICLE = 6    # initial neighbour-entry capacity per particle (half list); grows when exceeded
 SKIN_FRACTION = 0.3        # Verlet skin = 0.3 R
 # Frozen soil (soil.sleep): a full rebuild moves the particles that are asleep, farther than FREEZE_MARGIN beyond

@@ -227,8 +227,10 @@ def test_an_opening_takes_in_the_soil_over_its_edge_where_a_face_pushes_it_ahead
     """A scoop cutting 0.3 m deep at 6 cm grains (2.5 across the cut). With its mouth an opening (a bucket's,
     machine.yaml's cutting_edges), its wedge is the soil its edge meets: every grain of it lies within a grain radius
     of the edge up the mouth (and a substep's moves), the soil over the edge is free, the scoop fills and the wedge
-    still holds the scoop back. With the mouth a plate (a blade's face) the whole wedge slides up it, ahead of the
-    scoop, which stays empty. The mass is kept to round-off either way."""
+    still holds the scoop back, and the scoop slides under the soil it cuts: it takes in more than half of what its
+    mouth swept (the edge's soil sliding along the failure plane, as a plate's wedge does, shoved the soil ahead of the
+    mouth: 0.40 of it). With the mouth a plate (a blade's face) the whole wedge slides up it, ahead of the scoop, which
+    stays empty. The mass is kept to round-off either way."""
     held = {}
     for opening in (True, False):
         sim = Simulation.from_scene(_scoop_scene(tmp_path, opening), overrides=["soil.overrides.radius=0.06"],
@@ -256,4 +258,6 @@ def test_an_opening_takes_in_the_soil_over_its_edge_where_a_face_pushes_it_ahead
         assert np.mean(push[500:]) > 0.0  # the wedge holds the scoop back (it travels along -x)
         held[opening] = sim.soil_in_tools()[sim.model.bindings[0].name]
         assert sum(soil.mass_budget().values()) == pytest.approx(before, rel=1e-9)
-    assert held[True] > 20.0 and held[False] < 0.2 * held[True], held
+    # the mouth, 0.6 m wide inside, swept 0.4 m of the bed 0.3 m deep
+    swept = 0.4 * 0.3 * 0.6 * soil.bulk.density
+    assert held[True] > 0.5 * swept and held[False] < 0.2 * held[True], (held, swept)
