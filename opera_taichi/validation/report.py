@@ -206,6 +206,13 @@ from the version in the header. The knobs, in the order to tune them:
    0.555 / 0.498 / 0.347: no rolling resistance passes the wall, the 4-grain column and the heap together on this
    pour. A grain shape (clumps) that holds the heap without rolling resistance is the way left to try, with the
    whole report again.
+   **The heap's fit and the hopper's outlet** (2026-12-07, one run each): the outlet, 10 grains across against
+   arching, rides on the apex and leaves a plateau there, 37% of the coarse heap's radius and 26% of the default
+   one's, and the fit from 15% of the radius takes part of it in. Fitted from the outlet's rim outward instead, the
+   report's heaps read steeper at both resolutions (sand 35.4 / 32.3 deg at default / coarse against 33.6 / 29.8,
+   glass beads 21.4 / 23.5 against 20.6 / 20.9), and the sideways start with 0.25 (above) 30.9 / 31.3 against
+   29.7 / 28.7: the 2-3 deg between the resolutions is the soil's, not the fit's, and as wide as the band's
+   half-width. The fit stays as it is.
    **Boundaries.** The oracles assume soil below the wall's base and the blade's edge. With the (rough) pit floor
    at the wall's base the floor carried the wedge's heel (1.50 x Rankine at 0.2 H, still rising); with a smooth
    floor there the whole loose bed slid against the far pit wall. The cases put the pit floor H below the wall's
