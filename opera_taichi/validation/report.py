@@ -488,7 +488,8 @@ from the version in the header. The knobs, in the order to tune them:
    run: at coarse grains the layer the wedge dragged had added to its push), a60 delta20 1.17 / 1.04 x at 4 / 8
    (1.12 / 1.02 x), the wall 1.10 / 0.99 / 1.08 x (mean 1.055; 1.04 before): every gate still passes, a60 delta20 at
    4 across by the least (1.171 against 1.25). The wedge's model has a version of its own (`dem_soil.WEDGE_VERSION`,
-   in each run's manifest: 2 for the tables above; 3 changed a bucket's opening alone, below): `--resume` runs a wedged case of an older model again and keeps every other. On the
+   in each run's manifest: 2 for the tables above; 3 changed a bucket's opening alone, below): `--resume` runs a
+   wedged case of an older model again and keeps every other. On the
    blade with sleeping soil (6 cm) the draft reads +3.4% sleeping and +4.2% frozen against awake over twelve
    packings (+6.0 / +7.2% over the first six, +3.9 / +1.0% there before): one cut differs from the next by 6-7%, so
    the test takes twelve. A bucket's opening has no layer (below): the machine's wedge is as it was.
@@ -512,8 +513,9 @@ from the version in the header. The knobs, in the order to tune them:
    414 / 235 / 326 kg, 32.9 / 26.7 / 21.4 kN and 335 / 312 / 325 kg, 24.8 / 26.2 kN and 414 / 429 kg. So the means
    read 31.1 / 33.9 / 27.4 kN at 12 / 8 / 5 cm with the grains alone and 22.0 / 27.0 / 25.5 kN with the wedge: the
    grains' drag falls toward the wedge's as the grains get finer, and the wedge's changes less with the grain size;
-   the wedge takes in 75-85% of the grains' load. (Since version 3, 2026-12-07, the soil the edge meets moves with the edge and up
-   the mouth as fast as the edge cuts: moved along the failure plane, it had shoved the soil ahead of the mouth.
+   the wedge takes in 75-85% of the grains' load. (Since version 3, 2026-12-07, the soil the edge meets moves with
+   the edge and up the mouth as fast as the edge cuts: moved along the failure plane, it had shoved the soil ahead
+   of the mouth.
    On the dig path of 2026-11-28 the bucket then holds the grains' load, 420 against 419 kg at 8 cm and 462
    against 454 at 5 cm, with a drag within 12% of its 5 cm drag from 12 cm down: docs/dig_path.md. A plate's
    wedge is unchanged, bit for bit.) The wedge's own push is 8.0 kN of the 8 cm drag (the equation's for
