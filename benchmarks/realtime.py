@@ -1,7 +1,7 @@
 """The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
 
     python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
-                                  [--wedge off|on|both] [--duration 25] [--repeat 1]
+                                  [--wedge on|off|both] [--duration 25] [--repeat 1]
                                   [--spin-wait auto|on|off]
 
 For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
@@ -14,8 +14,8 @@ after the first run of a size; run the command twice for a cold cache). A table 
   equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade),
   and the soil the bucket holds at the end
 
-`--wedge on` cuts with the soil wedge at the bucket's edge (machine.soil_wedge; docs/validation.md), `both` runs each
-row without and with it.
+The bucket cuts with the soil wedge at its edge, as the scenes do by default (machine.soil_wedge; docs/dig_path.md);
+`--wedge off` cuts with the grains alone, `both` runs each row without and with it.
 
 `--arch cuda` runs the soil in its GPU layout (one thread per grain; docs/performance.md).
 `--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
@@ -127,7 +127,7 @@ def main() -> int:
                         help="runs per row: the median RTF and its range")
     parser.add_argument("--spin-wait", choices=("auto", "on", "off"), default="auto",
                         help="sim.spin_wait: keep the other cores running while the soil steps")
-    parser.add_argument("--wedge", choices=("off", "on", "both"), default="off",
+    parser.add_argument("--wedge", choices=("on", "off", "both"), default="on",
                         help="machine.soil_wedge: cut with the soil wedge at the bucket's edge")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]

@@ -241,7 +241,8 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
             raise UserError(f"{key}.initial_joints.{j} (or initial_joints_deg): {q:.4f} rad ({math.degrees(q):.1f} "
                             f"deg) is outside the joint's limits [{lo:.4f}, {hi:.4f}] rad ([{math.degrees(lo):.1f}, "
                             f"{math.degrees(hi):.1f}] deg)")
-    if getattr(cfg, "soil_wedge", False) and not desc.cutting_edges:
+    wedge = getattr(cfg, "soil_wedge", None)
+    if wedge and not desc.cutting_edges:
         raise UserError(f"{key}.soil_wedge: machine {desc.name}'s config gives no cutting_edges (machine.yaml: "
                         f"cutting_edges: {{<soil link>: {{centre, face_normal, face_up, width}}}}, in the link's frame)")
     kin = Kinematics(desc)
@@ -252,7 +253,7 @@ def _build_machine(key: str, cfg, motion, motion_key: str) -> MachineModel:
                         motion=_build_motion(motion, motion_key, desc, kin, initial_q, name),
                         command_latency=float(cfg.command_latency if cfg.command_latency is not None
                                               else desc.command_latency),
-                        soil_wedge=bool(getattr(cfg, "soil_wedge", False)))
+                        soil_wedge=bool(desc.cutting_edges) if wedge is None else bool(wedge))
 
 
 def soil_parameters(soil):

@@ -86,7 +86,7 @@ def test_a_killed_run_keeps_its_frames(tmp_path):
            *COARSE, "--set", "sim.duration=30"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
-        deadline = time.monotonic() + 90
+        deadline = time.monotonic() + 600  # (a guard against a hung run only: it compiles and settles first)
         frames = 0
         while time.monotonic() < deadline and proc.poll() is None:
             if (out / REPLAY_FILE).is_file():
@@ -94,7 +94,7 @@ def test_a_killed_run_keeps_its_frames(tmp_path):
                 if frames >= 8:
                     break
             time.sleep(0.2)
-        assert frames >= 8, proc.stderr.read().decode() if proc.poll() is not None else "no frames in 90 s"
+        assert frames >= 8, proc.stderr.read().decode() if proc.poll() is not None else "no frames in 600 s"
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
