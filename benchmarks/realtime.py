@@ -1,7 +1,7 @@
 """The main job against the clock: real-time factor by grain size, and the same dig in a 20 m site.
 
     python benchmarks/realtime.py [--radii 0.16,0.12,0.08,0.05] [--site] [--arch cpu] [--sleep both|on|off]
-                                  [--wedge on|off|both] [--duration 25] [--repeat 1]
+                                  [--wedge scene|on|off|both] [--duration 25] [--repeat 1]
                                   [--spin-wait auto|on|off]
 
 For each radius the main job (scenes/zx120_excavation.yaml, 25 s) runs through the CLI's runner with plots off;
@@ -14,8 +14,9 @@ after the first run of a size; run the command twice for a cold cache). A table 
   equation for a 0.5 m cut the bucket's width (0.9 m), dirt, vertical blade (a yardstick: a bucket is no flat blade),
   and the soil the bucket holds at the end
 
-The bucket cuts with the soil wedge at its edge, as the scenes do by default (machine.soil_wedge; docs/dig_path.md);
-`--wedge off` cuts with the grains alone, `both` runs each row without and with it.
+The bucket cuts as the scenes do by default (`--wedge scene`: with the soil wedge at its edge where the grains are
+coarse for it, 12 and 16 cm; machine.soil_wedge, docs/dig_path.md); `--wedge on` cuts with the wedge at every grain
+size, `off` with the grains alone, `both` runs each row without and with it. The wedge column says which cut.
 
 `--arch cuda` runs the soil in its GPU layout (one thread per grain; docs/performance.md).
 `--repeat N` runs each row N times and reports the median real-time factor with the range (a shared or virtual
@@ -70,15 +71,16 @@ def fee_draft(model) -> float:
 
 
 def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float, spin_wait: str = "auto",
-        wedge: bool = False) -> dict:
+        wedge: bool | None = None) -> dict:
     from opera_taichi.model import build_model
     from opera_taichi.recorders import read_csv_columns
     from opera_taichi.runner import run_scene
     from opera_taichi.scene import load_scene
 
     sets = [f"soil.overrides.radius={radius}", f"soil.sleep={str(sleep).lower()}", "output.plots=false",
-            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={spin_wait}",
-            f"machine.soil_wedge={str(wedge).lower()}"]
+            f"sim.duration={duration}", f"sim.arch={arch}", f"sim.spin_wait={spin_wait}"]
+    if wedge is not None:  # (None: as the scene says)
+        sets.append(f"machine.soil_wedge={str(wedge).lower()}")
     scene = load_scene(scene_path, sets)
     awake = AwakeCount()
     with tempfile.TemporaryDirectory() as tmp:
@@ -95,7 +97,8 @@ def one(scene_path: Path, radius: float, sleep: bool, arch: str, duration: float
     return dict(scene=scene.name, radius=radius, sleep=sleep, particles=result.particles,
                 awake=float(np.mean(awake.counts)) if awake.counts else float(result.particles),
                 rtf=result.real_time_factor, wall=result.wall_time, setup=manifest.get("setup_wall_time_s"),
-                total=total, psps=manifest.get("particle_steps_per_s"), draft=draft, fee=fee, held=held, wedge=wedge)
+                total=total, psps=manifest.get("particle_steps_per_s"), draft=draft, fee=fee, held=held,
+                wedge=bool(manifest["soil"]["wedges"]))
 
 
 def main() -> int:
@@ -127,11 +130,11 @@ def main() -> int:
                         help="runs per row: the median RTF and its range")
     parser.add_argument("--spin-wait", choices=("auto", "on", "off"), default="auto",
                         help="sim.spin_wait: keep the other cores running while the soil steps")
-    parser.add_argument("--wedge", choices=("on", "off", "both"), default="on",
-                        help="machine.soil_wedge: cut with the soil wedge at the bucket's edge")
+    parser.add_argument("--wedge", choices=("scene", "on", "off", "both"), default="scene",
+                        help="machine.soil_wedge: cut with the soil wedge at the bucket's edge (scene: as the scenes do)")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
-    wedges = {"both": (False, True), "on": (True,), "off": (False,)}[args.wedge]
+    wedges = {"both": (False, True), "on": (True,), "off": (False,), "scene": (None,)}[args.wedge]
     runs = [(ROOT / "scenes" / "zx120_excavation.yaml", r) for r in args.radii]
     if args.site:
         runs.append((ROOT / "scenes" / "zx120_site.yaml", 0.08))
@@ -151,7 +154,7 @@ def main() -> int:
                 r = tries[len(tries) // 2]  # the median run (the upper one of an even count)
                 medians[(path.stem, radius, sleep, wedge)] = r["rtf"]
                 spread = f"{tries[0]['rtf']:.3f}-{tries[-1]['rtf']:.3f}" if len(tries) > 1 else "-"
-                print(f"| {r['scene']} | {radius:g} | {'on' if sleep else 'off'} | {'on' if wedge else 'off'} | "
+                print(f"| {r['scene']} | {radius:g} | {'on' if sleep else 'off'} | {'on' if r['wedge'] else 'off'} | "
                       f"{r['particles']:,} | {r['awake']:,.0f} | {r['rtf']:.3f} | {spread} | "
                       f"{(r['psps'] or 0) / 1e6:.2f} | {r['draft'] / 1e3:.1f} | {r['fee'] / 1e3:.1f} | "
                       f"{r['draft'] / r['fee']:.2f} | {r['held']:.0f} |", flush=True)
@@ -159,7 +162,8 @@ def main() -> int:
     for wedge in wedges:
         site, small = (medians.get((stem, 0.08, True, wedge)) for stem in ("zx120_site", "zx120_excavation"))
         if site and small:
-            print(f"\nsite / small bed at 8 cm, sleep on, wedge {'on' if wedge else 'off'}: {site / small:.3f} of the "
+            label = {None: "as the scenes cut", True: "wedge on", False: "wedge off"}[wedge]
+            print(f"\nsite / small bed at 8 cm, sleep on, {label}: {site / small:.3f} of the "
                   f"small bed's real-time factor (within 20%: >= 0.8)")
     return 0
 

@@ -110,6 +110,7 @@ def _soil_block(sim) -> dict:
     block = sim.soil.describe()
     block["bulk"] = vars(sim.model.soil.bulk).copy()
     block["substeps_per_step"] = int(math.ceil(sim.model.dt / sim.soil.dt - 1e-9))
+    block["wedges"] = [b.name for b in sim.model.bindings if b.cutting_edge is not None]  # tools cutting with one
     return block
 
 

@@ -483,11 +483,14 @@ class MachineConfig(_Model):
     soil_wedge: Optional[Bool] = Field(
         None, description="Cut with the soil wedge at the machine's cutting edges (the machine config's "
                           "`cutting_edges`): where the edge meets the soil it pushes back with the earthmoving "
-                          "equation's equilibrium at any grain size (on the main job the drag at 12 cm grains reads "
-                          "the 5 cm grains' within 1%, where the grains alone draw 1.74 x, and the bucket holds the "
-                          "grains' load; docs/dig_path.md). null: on where the machine config gives cutting_edges; "
-                          "true: on (an error where it gives none); false: the soil pushes back grain by grain "
-                          "(8-15% faster, the same drag within the seeds' spread at 8 cm grains and finer).")
+                          "equation's equilibrium at any grain size, where the grains alone push back with a layer "
+                          "of coarse grains under the edge (the main job's drag at 12 cm grains: 0.99 x its 5 cm "
+                          "drag with the wedge, 1.74 x with the grains alone; docs/dig_path.md). null: where fewer "
+                          "than 4 grain diameters span the edge's width (the ZX120: grain radius over 8.75 cm), "
+                          "since from there down the grains alone drag within the seeds' spread of the wedge and run "
+                          "faster; true: at any grain size (an error where the machine config gives no edges); "
+                          "false: the soil pushes back grain by grain. The manifest's soil.wedges names the tools "
+                          "that cut with it.")
 
     @model_validator(mode="after")
     def _resolve(self):

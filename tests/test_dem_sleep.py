@@ -22,8 +22,9 @@ RADIUS = 0.12
 DIG = ["--set", f"soil.overrides.radius={RADIUS}", "--set", "sim.duration=5.5", "--set", "output.plots=false"]
 for _i, _t in enumerate((0.0, 0.8, 1.5, 4.5, 5.5, 6.5)):
     DIG += ["--set", f"motion.waypoints.{_i}.t={_t}"]
-# The freezing tests cut with the grains alone: the bucket's wedge reads the ground ahead of its edge up to 3 bounding
-# radii beyond its sphere (kernels/dem.py, WG_FREEZE_REACH), all of this 6 m x 3 m bed, so none of it would freeze.
+# The freezing tests cut with the grains alone (at 12 cm the scene cuts with the bucket's wedge): the wedge reads the
+# ground ahead of its edge up to 3 bounding radii beyond its sphere (kernels/dem.py, WG_FREEZE_REACH), all of this
+# 6 m x 3 m bed, so none of it would freeze.
 # A wedge cutting frozen soil: tests/test_dem_wedge.py.
 GRAINS = "machine.soil_wedge=false"
 
@@ -58,6 +59,8 @@ def test_sleeping_soil_digs_like_the_awake_soil(digs):
     assert np.mean(np.abs(za[dug] - zs[dug])) < RADIUS
     assert np.sum(np.clip(z0 - zs, 0, None)) == pytest.approx(np.sum(np.clip(z0 - za, 0, None)), rel=0.15)
     assert json.loads((asleep / "manifest.json").read_text())["soil"]["sleep"] is True
+    for folder in (awake, asleep):  # (12 cm grains: the bucket cuts with its wedge, as the scene's default says)
+        assert json.loads((folder / "manifest.json").read_text())["soil"]["wedges"] == ["bucket_link"]
 
 
 @pytest.fixture
@@ -514,6 +517,7 @@ def test_a_frozen_soil_digs_like_the_awake_soil_and_resumes_bit_for_bit(digs, fr
     folder = tmp_path / "frozen"
     assert main(["run", SCENE, "--quiet", "--out", str(folder), "--set", "soil.sleep=true", "--set", GRAINS,
                  *DIG]) == 0
+    assert json.loads((folder / "manifest.json").read_text())["soil"]["wedges"] == []
     mass = read_csv_columns(folder / "soil_mass.csv")["mass_kg"]
     assert np.all(np.abs(mass - mass[0]) <= 1e-9 * mass[0])
     z0 = np.load(digs["grains"] / "terrain_initial.npz")["z"]

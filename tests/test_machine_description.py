@@ -373,9 +373,9 @@ def test_track_max_speed_is_read_checked_and_its_absence_said(tmp_path):
 
 def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
     """machine.yaml's cutting_edges: the ZX120 bucket's edge lies on the edge's end face and its face (the opening's
-    plane, edge to top edge, an opening) faces the mouth; it acts unless a scene sets machine.soil_wedge: false (a
-    machine without edges cuts with its grains, and asking for its wedge is an error); a bad edge is one line naming
-    the file and the key."""
+    plane, edge to top edge, an opening) faces the mouth; it acts where a scene sets machine.soil_wedge: true, and by
+    default where fewer than 4 grain diameters span the edge (asking a machine without edges for its wedge is an
+    error); a bad edge is one line naming the file and the key."""
     from opera_taichi.model import build_model
     from opera_taichi.scene import load_scene
 
@@ -388,16 +388,25 @@ def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
     assert abs(normal @ up) < 1e-9 and normal[0] > 0.0  # the mouth faces +x of bucket_link
     assert edge.opening  # (no plate: the soil over the edge passes into the bucket)
     scene = Path(__file__).resolve().parents[1] / "scenes" / "zx120_excavation.yaml"
-    on = build_model(load_scene(scene)).bindings[0]  # (null: on where the machine has edges)
-    asked = build_model(load_scene(scene, ["machine.soil_wedge=true"])).bindings[0]
-    off = build_model(load_scene(scene, ["machine.soil_wedge=false"])).bindings[0]
-    assert on.cutting_edge == edge and asked.cutting_edge == edge and off.cutting_edge is None
+
+    def cuts_with_wedge(*sets):
+        binding = build_model(load_scene(scene, list(sets))).bindings[0]
+        assert binding.cutting_edge in (edge, None)
+        return binding.cutting_edge is not None
+
+    # by default on where the grains are coarse for the 0.70 m edge: 4 diameters across at a radius of 8.75 cm
+    assert edge.width == pytest.approx(0.70)
+    assert not cuts_with_wedge() and not cuts_with_wedge("soil.overrides.radius=0.0874")   # the scene's 8 cm
+    assert cuts_with_wedge("soil.overrides.radius=0.0876") and cuts_with_wedge("soil.overrides.radius=0.12")
+    assert cuts_with_wedge("machine.soil_wedge=true")
+    assert not cuts_with_wedge("machine.soil_wedge=false", "soil.overrides.radius=0.12")
 
     settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
     bare = tmp_path / "bare" / "machine.yaml"  # a machine without edges: asking for its wedge is an error
     bare.parent.mkdir()
     bare.write_text(yaml.safe_dump({k: v for k, v in settings.items() if k != "cutting_edges"}))
-    assert build_model(load_scene(scene, [f"machine.config={bare}"])).bindings[0].cutting_edge is None
+    assert build_model(load_scene(scene, [f"machine.config={bare}", "soil.overrides.radius=0.12"])
+                       ).bindings[0].cutting_edge is None
     with pytest.raises(UserError) as info:
         build_model(load_scene(scene, ["machine.soil_wedge=true", f"machine.config={bare}"]))
     assert str(info.value).startswith("machine.soil_wedge:") and "no cutting_edges" in str(info.value)

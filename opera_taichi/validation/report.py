@@ -494,10 +494,11 @@ from the version in the header. The knobs, in the order to tune them:
    packings (+6.0 / +7.2% over the first six, +3.9 / +1.0% there before): one cut differs from the next by 6-7%, so
    the test takes twelve. A bucket's opening has no layer (below): the machine's wedge is as it was.
    **The machine's bucket** has its edge in machine.yaml (`cutting_edges`: the edge to the top
-   edge of the opening, AGX's shovel plane), marked `opening: true`, and it is opt-in (`machine.soil_wedge: true`). A
-   mouth is no plate: there the wedge is the soil the edge meets (at most a grain radius over the edge, up the
-   mouth's plane), which rises with the bucket until it clears the edge, and the tool feels that wedge's equilibrium
-   instead of the grains' contacts at its edge; the soil over the edge meets the bucket only through the wedge and
+   edge of the opening, AGX's shovel plane), marked `opening: true`; a machine cuts with it where fewer than 4 grain
+   diameters span that edge, or where a scene asks (`machine.soil_wedge`; docs/dig_path.md). A mouth is no plate:
+   there the wedge is the soil the edge meets (at most a grain radius over the edge, up the mouth's plane), which
+   rises with the bucket until it clears the edge, and the tool feels that wedge's equilibrium instead of the grains'
+   contacts at its edge; the soil over the edge meets the bucket only through the wedge and
    the plates, and passes in (tests/test_dem_wedge.py: a scoop 2.5 grains across its cut fills, and with its mouth
    taken for a plate the whole wedge slides up it and the scoop stays empty); the soil beyond the failure plane takes
    the wedge's push through its contacts alone. The first bucket wedge took the mouth for a plate: its grains slid up
@@ -520,9 +521,9 @@ from the version in the header. The knobs, in the order to tune them:
    against 454 at 5 cm, with a drag within 12% of its 5 cm drag from 12 cm down: docs/dig_path.md. A plate's
    wedge is unchanged, bit for bit.) The wedge's own push is 8.0 kN of the 8 cm drag (the equation's for
    a 0.9 m flat blade at the cut: 11.5 kN); the rest is the load and the bucket's floor, which the path presses into
-   the trench (the boom at its torque limit 21-45% of the run), and which the wedge leaves to the grains. It stays
-   opt-in for now: it costs speed, 1.61-1.62 x real time against 1.91-2.06 x (alternating pairs at 8 cm on an idle
-   2-vCPU host; `python benchmarks/realtime.py --wedge both` compares the two), and it leaves soil out. OPERA's own
+   the trench (the boom at its torque limit 21-45% of the run), and which the wedge leaves to the grains. It costs
+   speed, 1.61-1.62 x real time against 1.91-2.06 x (alternating pairs at 8 cm on an idle 2-vCPU host; `python
+   benchmarks/realtime.py --wedge both` compares the two; version 2 also left soil out). OPERA's own
    bucket (its URDF with this machine.yaml) with the wedge: 44.3 against 48.3 kN, 327 against 425 kg. On a GPU the
    bucket's wedge did not repeat bit for bit: two `--arch cuda` runs of the main job with the plate version drifted
    apart from 1e-9 N at t = 9.05 s on an NVIDIA H200, where the default (two runs) and a blade's wedge (three) repeat
