@@ -212,6 +212,8 @@ def _tools_part(model, mass_cols, wrench_cols, density) -> dict:
                 entry["contact_time_s"] = float(interval_weights(t)[contact].sum())
                 entry["contact_samples"] = int(contact.sum())
                 entry["force_samples"] = int(len(f))
+                if name in bindings:  # (a machine's soil link cuts with its wedge where the grains are coarse)
+                    entry["soil_wedge"] = bindings[name].cutting_edge is not None
         if entry:
             tools[name] = entry
     return tools
@@ -401,9 +403,10 @@ def format_summary(summary: dict) -> str:
     if forced:
         lines.append(f"Soil force on the tools (mean over samples in contact, |F| > {CONTACT_FORCE_N:g} N):")
         for name, e in forced.items():
+            wedge = ", cut with its soil wedge" if e.get("soil_wedge") else ""
             lines.append(f"  {name:<{width}}  peak {e['peak_force_N'] / 1e3:.1f} kN at t = "
                          f"{e['peak_force_time_s']:.2f} s, mean {e['mean_force_in_contact_N'] / 1e3:.1f} kN over "
-                         f"{e['contact_time_s']:.2f} s in contact")
+                         f"{e['contact_time_s']:.2f} s in contact{wedge}")
     actuators = summary.get("actuators")
     if actuators:
         jw = max(len(j) for j in actuators)

@@ -194,7 +194,7 @@ def test_mass_balance_and_run_block(run, summary):
 def test_every_key_names_its_unit(summary):
     units = ("_kg", "_m3", "_s", "_N", "_Nm", "_m", "_m2", "_rad_s", "_fraction", "_kg_m3")
     unitless = {"name", "status", "machines", "particles", "real_time_factor", "fill_factor", "relative_drift",
-                "struck_volume_source", "heightmap", "source", "contact_samples", "force_samples"}
+                "struck_volume_source", "heightmap", "source", "contact_samples", "force_samples", "soil_wedge"}
     leaves = [(k, v) for k, v in summary.items() if not isinstance(v, dict)]
     for part in ("run", "terrain", "mass_balance"):
         leaves += list(summary[part].items())
@@ -215,6 +215,10 @@ def test_write_summary_and_its_text(run, tmp_path):
     assert f"{bucket['soil_held_kg']:.1f} kg" in text
     assert f"dug {written['terrain']['dug_m3']:.3f} m3" in text
     assert "boom_joint" in text and "|F| > 1 N" in text
+    # (12 cm grains: the bucket cuts with its wedge, as the manifest says, and the summary says so)
+    assert bucket["soil_wedge"] is True and json.loads((run_dir / "manifest.json").read_text())["soil"]["wedges"] == \
+        ["bucket_link"]
+    assert "cut with its soil wedge" in text
     assert len(text.splitlines()) < 20
 
 
