@@ -131,7 +131,8 @@ def main() -> int:
     parser.add_argument("--spin-wait", choices=("auto", "on", "off"), default="auto",
                         help="sim.spin_wait: keep the other cores running while the soil steps")
     parser.add_argument("--wedge", choices=("scene", "on", "off", "both"), default="scene",
-                        help="machine.soil_wedge: cut with the soil wedge at the bucket's edge (scene: as the scenes do)")
+                        help="machine.soil_wedge: cut with the soil wedge at the bucket's edge (scene: as the "
+                             "scenes do)")
     args = parser.parse_args()
     sleeps = {"both": (False, True), "on": (True,), "off": (False,)}[args.sleep]
     wedges = {"both": (False, True), "on": (True,), "off": (False,), "scene": (None,)}[args.wedge]

@@ -166,6 +166,15 @@ def _bool_or_auto(value):
 _bool_or_auto.doc = "true \\| false \\| auto"
 
 
+def _bool_or_null(value):
+    if value is None or isinstance(value, bool):
+        return value
+    raise _fail("true, false or null", value)
+
+
+_bool_or_null.doc = "true \\| false \\| null"
+
+
 def _scene_dir(info: ValidationInfo) -> Path:
     base = (info.context or {}).get("base_dir")
     return Path(base) if base else Path.cwd()
@@ -480,7 +489,7 @@ class MachineConfig(_Model):
     command_latency: Optional[_num("s", ge=0, le=MAX_COMMAND_LATENCY)] = Field(
         None, description="Dead time between a command from a ROS bridge and the machine acting on it (the real "
                           "machine's response delay); null = the machine config's `command_latency` (0 if none).")
-    soil_wedge: Optional[Bool] = Field(
+    soil_wedge: Annotated[Optional[bool], BeforeValidator(_bool_or_null)] = Field(
         None, description="Cut with the soil wedge at the machine's cutting edges (the machine config's "
                           "`cutting_edges`): where the edge meets the soil it pushes back with the earthmoving "
                           "equation's equilibrium at any grain size, where the grains alone push back with a layer "

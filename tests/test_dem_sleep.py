@@ -97,7 +97,8 @@ def test_a_held_load_weighs_on_the_bucket_what_it_weighs(tmp_path):
     grains of 13 in this run: the force read 1.20 x the hull's load and 1.0000 x the carried grains')."""
     out = tmp_path / "held"
     assert main(["run", SCENE, "--quiet", "--out", str(out), "--set", f"soil.overrides.radius={RADIUS}",
-                 "--set", "sim.duration=29", "--set", "output.plots=false", "--set", "output.particles_final=true"]) == 0
+                 "--set", "sim.duration=29", "--set", "output.plots=false",
+                 "--set", "output.particles_final=true"]) == 0
     wrench = read_csv_columns(out / "tool_wrench.csv")
     held_kg = read_csv_columns(out / "soil_mass.csv")["in_bucket_link_kg"][-1]
     with np.load(out / "particles_final.npz") as final:
@@ -108,7 +109,8 @@ def test_a_held_load_weighs_on_the_bucket_what_it_weighs(tmp_path):
     assert 100.0 < held_kg <= carried_kg + 1e-9           # the hull's load is carried
     t, fz = np.asarray(wrench["t"]), np.asarray(wrench["fz"])
     holding = t >= 26.0
-    # the carried grains' weight, all along the hold, less up to 0.1% while the joints creep to rest; steady to a percent
+    # the carried grains' weight, all along the hold, less up to 0.1% while the joints creep to rest; steady to a
+    # percent
     weight = carried_kg * 9.81
     assert np.all(-fz[holding] > 0.99 * weight) and np.all(-fz[holding] < 1.01 * weight), (fz[holding].min(), weight)
     assert np.ptp(fz[holding]) < 0.01 * weight
@@ -256,9 +258,9 @@ def test_a_grain_dropped_on_a_frozen_bed_bounces_as_on_an_awake_one(freeze_any_b
 def _compressed_dig(skip: bool, steps: int, keep: bool | None = None, repartitions: list | None = None,
                     wedge: bool = True):
     """The compressed dig for `steps` rigid steps (wedge=False: with the grains alone, GRAINS), the shortcuts of a
-    sleeping soil on (skip) or off (keep: the lists kept, by default as skip); returns the soil with what the shortcuts did: the mean fraction of blocks that took
-    part and the lists kept at rebuilds. repartitions: gets (particles, frozen before, frozen after, lists kept, of
-    which frozen) of each full rebuild."""
+    sleeping soil on (skip) or off (keep: the lists kept, by default as skip); returns the soil with what the
+    shortcuts did: the mean fraction of blocks that took part and the lists kept at rebuilds. repartitions: gets
+    (particles, frozen before, frozen after, lists kept, of which frozen) of each full rebuild."""
     from kernels import dem
     from opera_taichi.control import ScriptController
     from opera_taichi.simulation import Simulation

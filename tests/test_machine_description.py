@@ -400,6 +400,9 @@ def test_the_bucket_has_its_cutting_edge_and_bad_edges_are_one_line(tmp_path):
     assert cuts_with_wedge("soil.overrides.radius=0.0876") and cuts_with_wedge("soil.overrides.radius=0.12")
     assert cuts_with_wedge("machine.soil_wedge=true")
     assert not cuts_with_wedge("machine.soil_wedge=false", "soil.overrides.radius=0.12")
+    with pytest.raises(UserError) as info:
+        load_scene(scene, ["machine.soil_wedge=maybe"])
+    assert "machine.soil_wedge" in str(info.value) and "true, false or null" in str(info.value)
 
     settings = yaml.safe_load((machines_dir() / "zx120" / "machine.yaml").read_text())
     bare = tmp_path / "bare" / "machine.yaml"  # a machine without edges: asking for its wedge is an error
