@@ -241,10 +241,9 @@ from the version in the header. The knobs, in the order to tune them:
    and not the column's strength, since it neither stacks nor rolls as one. But at 16 across the same clump heaps at
    30.2 / 31.3 deg (seeds 0 / 1), under and at the default band's lower edge, where the spheres rise to 33.7: its
    heap falls with finer grains as the spheres' rises, and as it stands it trades the default heap for the coarse
-   one. Its price is four
-   spheres a grain: 2.5 x the sphere's wall time in the stand-alone code (the wall runs), about what spheres of 0.63
-   x the radius cost, so the main job's 8 cm grains would cost what its 5 cm spheres cost (0.57 x real time, under
-   the 1.0 the speed gate asks). Not in the solver: that needs a rigid body per grain (pose, spin, inertia), whole
+   one. Its price is four spheres a grain: 2.5 x the sphere's wall time in the stand-alone code (the wall runs),
+   about what spheres of 0.63 x the radius cost, so the main job's 8 cm grains would cost what its 5 cm spheres cost
+   (0.57 x real time, under the 1.0 the speed gate asks). Not in the solver: that needs a rigid body per grain (pose, spin, inertia), whole
    clumps asleep and frozen, the pour turned at random and the bed's density matched on clumps, then a shape and
    mapping that hold the heap at both resolutions, the blade and the wall at the default one, the columns at a = 1
    and 2, the glass beads and the cohesive cuts, and the whole report again.
