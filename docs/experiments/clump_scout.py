@@ -1,6 +1,6 @@
 """Scouting run for docs/validation.md (not part of the package, not tested): do rigid clumps of spheres hold a
 heap without rolling resistance, and does a 4-grain column of them spread, where spheres need rolling resistance
-for the heap and it holds the column up?
+for the heap and it holds the column up? And does their blade at 4 grains across draw less than the spheres'?
 
 A small stand-alone DEM of rigid clumps (each a regular tetrahedron of 4 equal spheres whose centres lie c
 sphere-radii from the clump's centre; c = 0 is a single sphere), integrated as rigid bodies (isotropic inertia,
@@ -11,7 +11,7 @@ project's grain. Grain size: the clump's volume-equivalent radius, 1 +- 0.1 unif
 are rebuilt every step and atomics order them, so runs are not bit-reproducible (a seed's grain count varies by a
 few).
 
-    python docs/experiments/clump_scout.py heap|column|wall C MU_R [SEED] [ACROSS]
+    python docs/experiments/clump_scout.py heap|column|wall|blade C MU_R [SEED] [ACROSS]
 
 heap: a cylinder ACROSS volume-equivalent diameters across (default 12, the coarse repose case's; 0.4 m), filled
 with 0.064 m3 of poured grains, is lifted at 0.05 m/s off a rough floor; the flank angle is read with the project's
@@ -19,12 +19,16 @@ heap_angles. column: a column ACROSS (default 8) diameters long and half as tall
 wide between smooth side walls, poured into its pit; the pit's front wall goes and the run-out is read with the
 project's runout_length. wall: the passive wall case (H 0.3 m, ACROSS (default 4) diameters across H, phi 35 deg,
 a smooth wall at 0.1 m/s for 0.2 H, the pit's front face holding the soil below its base), read with the
-project's peak_of_travel_average over Rankine's thrust at the settled bed's density. Every bed is poured as a
+project's peak_of_travel_average over Rankine's thrust at the settled bed's density. blade: the plane-strain blade
+a90 delta0 d 0.3 m (the gate's cut, ACROSS (default 4) diameters across d, phi 35 deg): the same smooth face, its
+edge d deep over d of soil, 3 d of travel at 0.1 m/s through a bed 6.5 d long in a slab 8 diameters wide, spoil
+whose centre rises R/2 above the ground taken out (`soil.clear_above`), the mean draft over d to 3 d of travel over
+the earthmoving equation's (for this cut, Rankine's thrust). Every bed is poured as a
 jittered lattice of grains turned at random. C: the clump's centre distance in sphere radii (0: spheres). MU_R:
 rolling resistance (the mapping's 0.3 for sand). Prints one JSON line.
 
 Results (2026-12-07, the 2-vCPU Intel Xeon, runs side by side): docs/validation.md, calibration note 1, "Clumps,
-scouted outside the project". A coarse heap takes 2-9 minutes, a column or a wall 15-40 s.
+scouted outside the project". A coarse heap takes 2-9 minutes, a column or a wall 15-40 s, a blade 1-3 minutes.
 """
 import json
 import math
@@ -46,14 +50,15 @@ try:
     c_over_r = float(sys.argv[2])
     mu_r = float(sys.argv[3])
     seed = int(sys.argv[4]) if len(sys.argv) > 4 else 0
-    across = int(sys.argv[5]) if len(sys.argv) > 5 else dict(heap=12, column=8, wall=4).get(case, 0)
-    if case not in ("heap", "column", "wall") or not (0.0 <= c_over_r <= 1.5 and 0.0 <= mu_r <= 1.0
+    across = int(sys.argv[5]) if len(sys.argv) > 5 else dict(heap=12, column=8, wall=4, blade=4).get(case, 0)
+    if case not in ("heap", "column", "wall", "blade") or not (0.0 <= c_over_r <= 1.5 and 0.0 <= mu_r <= 1.0
                                                       and 4 <= across <= 24):
         raise ValueError
 except (IndexError, ValueError):
-    print("usage: clump_scout.py heap|column|wall C (0-1.5) MU_R (0-1) [SEED] [ACROSS 4-24]", file=sys.stderr)
+    print("usage: clump_scout.py heap|column|wall|blade C (0-1.5) MU_R (0-1) [SEED] [ACROSS 4-24]", file=sys.stderr)
     sys.exit(2)
 rng = np.random.default_rng(seed)
+FACE = case in ("wall", "blade")  # a smooth vertical face pushed into a pit of soil
 
 # ---------------------------------------------------------------------------------------------- the grain
 MEMBERS = 1 if c_over_r == 0.0 else 4
@@ -82,7 +87,7 @@ vol_unit, r2_unit = clump_volume_and_gyration(c_over_r)
 r_eq_unit = (vol_unit * 3.0 / (4.0 * math.pi)) ** (1.0 / 3.0)  # volume-equivalent radius per sphere radius
 
 bulk = soil_model.resolve_soil("sand")
-if case == "wall":  # the passive wall case's soil: phi 35 deg, 1700 kg/m3, a smooth wall
+if FACE:  # the passive wall's and the blade's soil: phi 35 deg, 1700 kg/m3, a smooth face
     bulk = soil_model.resolve_soil("sand", {"friction_angle_deg": 35.0, "density": 1700.0})
     H = 0.3
     R_eq = H / (2 * across)
@@ -112,8 +117,8 @@ if case == "heap":
     fill_volume = D ** 3
     dom_lo = np.array([-1.2, -1.2, -0.05])
     dom_hi = np.array([1.2, 1.2, 1.4])
-elif case == "wall":
-    LX, HALF_Y, DEPTH = 3.5 * H, H, 2.0 * H
+elif FACE:
+    LX, HALF_Y, DEPTH = (3.5 if case == "wall" else 6.5) * H, H, 2.0 * H
     dom_lo = np.array([-0.3, -HALF_Y - 0.01, -DEPTH - 0.05])
     dom_hi = np.array([LX + 0.05, HALF_Y + 0.01, 1.0])
 else:
@@ -128,12 +133,12 @@ planes = [((0, 0, 0), (0, 0, 1), micro.mu)]
 if case == "column":
     planes += [((0, 0, 0), (1, 0, 0), micro.mu), ((0, 0, 0), (0, 1, 0), 0.0), ((0, W, 0), (0, -1, 0), 0.0),
                ((L0, 0, 0), (-1, 0, 0), micro.mu)]
-if case == "wall":  # the pit (floor and back rough, sides smooth); its front below the wall's base; the wall
+if FACE:  # the pit (floor and back rough, sides smooth); its front below the face's base; the face
     planes = [((0, 0, -DEPTH), (0, 0, 1), micro.mu), ((LX, 0, 0), (-1, 0, 0), micro.mu),
               ((0, -HALF_Y, 0), (0, 1, 0), 0.0), ((0, HALF_Y, 0), (0, -1, 0), 0.0), ((0, 0, 0), (1, 0, 0), 0.0),
               ((0, 0, 0), (1, 0, 0), 0.0)]
 NP = len(planes)
-WALL_BASE = -0.3 - 0.5 * R_eq if case == "wall" else 0.0  # (H - the wall's base, where its front face takes over)
+WALL_BASE = -0.3 - 0.5 * R_eq if FACE else 0.0  # (H - the wall's base, where its front face takes over)
 
 # ---------------------------------------------------------------------------------------------- the pour
 spacing = 2.0 * (c_over_r + 1.0) * r_s * 1.1 * 1.05
@@ -148,7 +153,7 @@ def pour() -> np.ndarray:
         keep = np.hypot(xx, yy) <= R_cyl - 1.1 * (c_over_r + 1) * r_s
         layer = np.stack([xx[keep], yy[keep]], 1)
         need = int(fill_volume * 0.55 / (vol_unit * r_s ** 3)) + 1
-    elif case == "wall":
+    elif FACE:
         margin = 1.1 * (c_over_r + 1) * r_s
         nx = int((LX - 2 * margin) / spacing) + 1
         ny = int((2 * HALF_Y - 2 * margin) / spacing) + 1
@@ -169,7 +174,7 @@ def pour() -> np.ndarray:
     layers = -(-need // len(layer))
     pts = []
     for k in range(layers):
-        z = 1.2 * (c_over_r + 1) * r_s + k * spacing - (DEPTH if case == "wall" else 0.0)
+        z = 1.2 * (c_over_r + 1) * r_s + k * spacing - (DEPTH if FACE else 0.0)
         pts.append(np.column_stack([layer, np.full(len(layer), z)]))
     pts = np.concatenate(pts)
     return pts + rng.uniform(-0.03, 0.03, pts.shape) * spacing
@@ -372,8 +377,9 @@ def kinetic() -> ti.f64:
 step_count = 0
 
 
-def run(duration: float, drag: float = 0.0, lift: float = 0.0, every=None, wall=None):
-    """Steps for `duration`; a lift ends early once the cylinder has cleared every grain and they are at rest."""
+def run(duration: float, drag: float = 0.0, lift: float = 0.0, every=None, wall=None, clear_above=None):
+    """Steps for `duration`; a lift ends early once the cylinder has cleared every grain and they are at rest.
+    clear_above: grains whose centre rises above this height are taken out (the blade's spoil)."""
     global step_count
     n = int(math.ceil(duration / dt))
     for i in range(n):
@@ -389,8 +395,17 @@ def run(duration: float, drag: float = 0.0, lift: float = 0.0, every=None, wall=
             wall.append(wall_push[None])
             wall_push[None] = 0.0
             P_pt[NP - 1] = P_pt[NP - 1] + P_v[NP - 1] * dt
+        if clear_above is not None and i % 20 == 0:
+            clear(clear_above)
         if every and i % every == 0:
             print(f"  t {i * dt:.2f} s, KE {kinetic():.3g} J", flush=True)
+
+
+@ti.kernel
+def clear(z: ti.f64):
+    for a in range(NC):
+        if X[a][2] > z:
+            alive[a] = 0
 
 
 def out_of_domain() -> np.ndarray:
@@ -423,7 +438,7 @@ if case == "heap":
     ang = heap_angles(pos, r, 2.0 * R_eq)
     result["flank_angles_deg"] = [math.degrees(v) for v in ang]
     result["angle_deg"] = float(np.mean(result["flank_angles_deg"]))
-elif case == "wall":
+elif FACE:
     run(1.5, drag=2.0)
     run(0.5)
     over = X.to_numpy()[:, 2] > -R_eq  # level with the ground
@@ -443,13 +458,18 @@ elif case == "wall":
     P_v[NP - 1] = (0.1, 0.0, 0.0)
     wall_push[None] = 0.0  # (it summed the pit's front face during the pour)
     push: list = []
-    run((0.2 * H + gap) / 0.1, wall=push)
+    travel_to = 0.2 * H if case == "wall" else 3.0 * H
+    run((travel_to + gap) / 0.1, wall=push, clear_above=0.5 * R_eq if case == "blade" else None)
     travel = np.arange(1, len(push) + 1) * dt * 0.1 - gap
     thrust = np.array(push) / (2 * HALF_Y)
-    peak = peak_of_travel_average(travel, thrust, 2.0 * R_eq)
     kp = math.tan(math.radians(45 + 17.5)) ** 2
-    rankine = 0.5 * kp * density * 9.81 * H ** 2
-    result.update(peak_thrust=peak, rankine=rankine, ratio=peak / rankine)
+    rankine = 0.5 * kp * density * 9.81 * H ** 2  # the FEE of a smooth vertical blade without surcharge too
+    if case == "wall":
+        peak = peak_of_travel_average(travel, thrust, 2.0 * R_eq)
+        result.update(peak_thrust=peak, rankine=rankine, ratio=peak / rankine)
+    else:  # the blade's gate: the mean draft over d to 3d of travel
+        steady = float(thrust[(travel >= H) & (travel <= 3.0 * H)].mean())
+        result.update(draft=steady, fee=rankine, ratio=steady / rankine)
     marks = np.linspace(0, len(thrust) - 1, 12).astype(int)
     result["curve"] = [(round(float(travel[i]), 4), round(float(thrust[max(0, i - 200):i + 200].mean()), 1))
                        for i in marks]  # (travel m, thrust N/m) at 12 points
