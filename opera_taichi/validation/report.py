@@ -211,7 +211,10 @@ from the version in the header. The knobs, in the order to tune them:
    report's heaps read steeper at both resolutions (sand 35.4 / 32.3 deg at default / coarse against 33.6 / 29.8,
    glass beads 21.4 / 23.5 against 20.6 / 20.9), and the sideways start with 0.25 (above) 30.9 / 31.3 against
    29.7 / 28.7: the 2-3 deg between the resolutions is the soil's, not the fit's, and as wide as the band's
-   half-width. The fit stays as it is.
+   half-width. The fit stays as it is. Nor is it the floor the heap stands on: poured onto a bed of its own grains
+   three diameters deep (a pit under the hopper, levelled with the ground; a scratch copy, seed 0) instead of the
+   rough ground, the coarse sand heap read 30.4 deg against 29.8 (its four flanks 26-35 deg), within the seeds'
+   spread (29.7-31.2).
    **Clumps, scouted outside the project** (2026-12-07, `docs/experiments/clump_scout.py`, one run a cell unless
    said): a small DEM of rigid clumps with this project's contact law and sand's mapping, the grain a regular
    tetrahedron of 4 equal spheres whose centres lie c sphere radii from its centre (c 1.2: they almost touch), sized
