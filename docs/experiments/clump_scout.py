@@ -17,15 +17,15 @@ heap: a cylinder ACROSS volume-equivalent diameters across (default 12, the coar
 with 0.064 m3 of poured grains, is lifted at 0.05 m/s off a rough floor; the flank angle is read with the project's
 heap_angles. column: a column ACROSS (default 8) diameters long and half as tall (a = 0.5), in a slice 8 diameters
 wide between smooth side walls, poured into its pit; the pit's front wall goes and the run-out is read with the
-project's runout_length. wall: the passive wall case (H 0.3 m, ACROSS (default 4) diameters across H, phi 35 deg,
-a smooth wall at 0.1 m/s for 0.2 H, the pit's front face holding the soil below its base), read with the
-project's peak_of_travel_average over Rankine's thrust at the settled bed's density. blade: the plane-strain blade
-a90 delta0 d 0.3 m (the gate's cut, ACROSS (default 4) diameters across d, phi 35 deg): the same smooth face, its
-edge d deep over d of soil, 3 d of travel at 0.1 m/s through a bed 6.5 d long in a slab 8 diameters wide, spoil
-whose centre rises R/2 above the ground taken out (`soil.clear_above`), the mean draft over d to 3 d of travel over
-the earthmoving equation's (for this cut, Rankine's thrust). Every bed is poured as a
-jittered lattice of grains turned at random. C: the clump's centre distance in sphere radii (0: spheres). MU_R:
-rolling resistance (the mapping's 0.3 for sand). Prints one JSON line.
+project's runout_length. wall: the passive wall case (H 0.3 m, ACROSS (default 4) diameters across H, phi 35 deg, a
+smooth wall at 0.1 m/s for 0.2 H, the pit's front face holding the soil below its base), read with the project's
+peak_of_travel_average over Rankine's thrust at the settled bed's density. blade: the plane-strain blade a90 delta0
+d 0.3 m (the gate's cut, ACROSS (default 4) diameters across d, phi 35 deg): the same smooth face, its edge d deep
+over d of soil, 3 d of travel at 0.1 m/s through a bed 6.5 d long in a slab 8 diameters wide, spoil whose centre
+rises R/2 above the ground taken out (`soil.clear_above`), the mean draft over d to 3 d of travel over the
+earthmoving equation's (for this cut, Rankine's thrust). Every bed is poured as a jittered lattice of grains turned
+at random. C: the clump's centre distance in sphere radii (0: spheres). MU_R: rolling resistance (the mapping's 0.3
+for sand). Prints one JSON line.
 
 Results (2026-12-07, the 2-vCPU Intel Xeon, runs side by side): docs/validation.md, calibration note 1, "Clumps,
 scouted outside the project". A coarse heap takes 2-9 minutes, a column or a wall 15-40 s, a blade 1-3 minutes.
