@@ -2,16 +2,17 @@
 heap without rolling resistance, and does a 4-grain column of them spread, where spheres need rolling resistance
 for the heap and it holds the column up? And does their blade at 4 grains across draw less than the spheres'?
 
-A small stand-alone DEM of rigid clumps (each a regular tetrahedron of 4 equal spheres whose centres lie c
-sphere-radii from the clump's centre; c = 0 is a single sphere), integrated as rigid bodies (isotropic inertia,
-exact for the tetrahedron by symmetry), with the project's own contact law (kernels.dem.contact_law: linear
-spring-dashpot, tangential spring with history, EPSD rolling resistance) and the sand preset's bulk-to-micro
-mapping (opera_taichi.soil.bulk_to_micro), so a single sphere with the mapping's rolling resistance is the
-project's grain. Grain size: the clump's volume-equivalent radius, 1 +- 0.1 uniform (polydispersity). Cell lists
-are rebuilt every step and atomics order them, so runs are not bit-reproducible (a seed's grain count varies by a
-few).
+A small stand-alone DEM of rigid clumps of equal spheres whose centres lie c sphere-radii from the clump's centre
+(c = 0 is a single sphere): 4 at a regular tetrahedron's corners (`--shape=tetra`, the default), 2 on a line
+(`dimer`, c + 1 times as long as wide) or 3 at an equilateral triangle's corners (`trimer`, touching at c 1.155).
+They move as rigid bodies (principal moments of the union, angular momentum integrated in the world frame), with
+the project's own contact law (kernels.dem.contact_law: linear spring-dashpot, tangential spring with history, EPSD
+rolling resistance) and the sand preset's bulk-to-micro mapping (opera_taichi.soil.bulk_to_micro), so a single
+sphere with the mapping's rolling resistance is the project's grain. Grain size: the clump's volume-equivalent
+radius, 1 +- 0.1 uniform (polydispersity). Cell lists are rebuilt every step and atomics order them, so runs are
+not bit-reproducible (a seed's grain count varies by a few).
 
-    python docs/experiments/clump_scout.py heap|column|wall|blade C MU_R [SEED] [ACROSS]
+    python docs/experiments/clump_scout.py heap|column|wall|blade C MU_R [SEED] [ACROSS] [--shape=tetra|dimer|trimer]
 
 heap: a cylinder ACROSS volume-equivalent diameters across (default 12, the coarse repose case's; 0.4 m), filled
 with 0.064 m3 of poured grains, is lifted at 0.05 m/s off a rough floor; the flank angle is read with the project's
@@ -28,7 +29,7 @@ at random. C: the clump's centre distance in sphere radii (0: spheres). MU_R: ro
 for sand). Prints one JSON line.
 
 Results (2026-12-07, the 2-vCPU Intel Xeon, runs side by side): docs/validation.md, calibration note 1, "Clumps,
-scouted outside the project". A coarse heap takes 2-9 minutes, a column or a wall 15-40 s, a blade 1-3 minutes.
+scouted outside the project" and "Fewer spheres a grain". A coarse heap takes 2-9 minutes, a column or a wall 15-40 s, a blade 1-3 minutes.
 """
 import json
 import math
@@ -45,7 +46,14 @@ from kernels import dem  # noqa: E402
 from opera_taichi import soil as soil_model  # noqa: E402
 from opera_taichi.validation.cases import heap_angles, peak_of_travel_average, runout_length  # noqa: E402
 
+SHAPES = ("tetra", "dimer", "trimer")
+shape = "tetra"
+for arg in [a for a in sys.argv[1:] if a.startswith("--shape=")]:
+    shape = arg.split("=", 1)[1]
+    sys.argv.remove(arg)
 try:
+    if shape not in SHAPES:
+        raise ValueError
     case = sys.argv[1]
     c_over_r = float(sys.argv[2])
     mu_r = float(sys.argv[3])
@@ -55,24 +63,27 @@ try:
                                                       and 4 <= across <= 24):
         raise ValueError
 except (IndexError, ValueError):
-    print("usage: clump_scout.py heap|column|wall|blade C (0-1.5) MU_R (0-1) [SEED] [ACROSS 4-24]", file=sys.stderr)
+    print("usage: clump_scout.py heap|column|wall|blade C (0-1.5) MU_R (0-1) [SEED] [ACROSS 4-24] "
+          "[--shape=tetra|dimer|trimer]", file=sys.stderr)
     sys.exit(2)
 rng = np.random.default_rng(seed)
 FACE = case in ("wall", "blade")  # a smooth vertical face pushed into a pit of soil
 
 # ---------------------------------------------------------------------------------------------- the grain
-MEMBERS = 1 if c_over_r == 0.0 else 4
-if MEMBERS == 1:
-    unit_offsets = np.zeros((1, 3))
-else:
-    unit_offsets = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / math.sqrt(3.0)
+SHAPE_OFFSETS = dict(  # member directions from the clump's centre, in its principal frame
+    tetra=np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) / math.sqrt(3.0),
+    dimer=np.array([[1, 0, 0], [-1, 0, 0]], float),
+    trimer=np.array([[1, 0, 0], [-0.5, math.sqrt(3.0) / 2, 0], [-0.5, -math.sqrt(3.0) / 2, 0]], float))
+unit_offsets = np.zeros((1, 3)) if c_over_r == 0.0 else SHAPE_OFFSETS[shape]
+MEMBERS = len(unit_offsets)
+GRAIN = "sphere" if MEMBERS == 1 else shape
 
 
-def clump_volume_and_gyration(c: float) -> tuple[float, float]:
-    """Volume of the union of unit spheres at c x unit_offsets, and its mean squared distance from the centre
-    (Monte Carlo, 2e6 points)."""
+def clump_volume_and_gyration(c: float) -> tuple[float, np.ndarray]:
+    """Volume of the union of unit spheres at c x unit_offsets, and the mean of x^2, y^2, z^2 over it in the
+    clump's frame (Monte Carlo, 2e6 points)."""
     if MEMBERS == 1:
-        return 4.0 / 3.0 * math.pi, 3.0 / 5.0
+        return 4.0 / 3.0 * math.pi, np.full(3, 1.0 / 5.0)
     g = np.random.default_rng(12345)
     ext = c + 1.0
     pts = g.uniform(-ext, ext, size=(2_000_000, 3))
@@ -80,10 +91,10 @@ def clump_volume_and_gyration(c: float) -> tuple[float, float]:
     for o in unit_offsets:
         inside |= ((pts - c * o) ** 2).sum(1) <= 1.0
     vol = inside.mean() * (2 * ext) ** 3
-    return float(vol), float((pts[inside] ** 2).sum(1).mean())
+    return float(vol), (pts[inside] ** 2).mean(0)
 
 
-vol_unit, r2_unit = clump_volume_and_gyration(c_over_r)
+vol_unit, x2_unit = clump_volume_and_gyration(c_over_r)
 r_eq_unit = (vol_unit * 3.0 / (4.0 * math.pi)) ** (1.0 / 3.0)  # volume-equivalent radius per sphere radius
 
 bulk = soil_model.resolve_soil("sand")
@@ -103,12 +114,13 @@ micro = soil_model.bulk_to_micro(bulk, bed_depth=0.5)
 k_n = micro.k_n
 rho_s = micro.solid_density
 mass_unit = rho_s * vol_unit * r_s ** 3
-inertia_unit = mass_unit * (2.0 / 3.0) * r2_unit * r_s ** 2  # isotropic: I = m <x^2 + y^2> = 2/3 m <r^2>
+# principal moments, I_x = m <y^2 + z^2> and so on (the three equal for the sphere and the tetrahedron)
+inertia_unit = mass_unit * (x2_unit.sum() - x2_unit) * r_s ** 2
 m_min = mass_unit * 0.9 ** 3
 t_c = soil_model.contact_duration(2.0 * k_n, m_min, micro.damping)
 dt = t_c / 10.0
 damping_c = soil_model.damping_for_step(micro.restitution, dt * math.sqrt(k_n / (0.5 * m_min)))
-print(f"{case}: C {c_over_r} ({MEMBERS} spheres), R_eq {R_eq:.4f} m, sphere r {r_s:.4f} m "
+print(f"{case}: {GRAIN} C {c_over_r} ({MEMBERS} spheres), R_eq {R_eq:.4f} m, sphere r {r_s:.4f} m "
       f"(R_eq / r {r_eq_unit:.3f}), mu {micro.mu:.3f}, mu_r {mu_r}, k_n {k_n:.3g}, dt {dt:.3g} s", flush=True)
 
 # ---------------------------------------------------------------------------------------------- geometry
@@ -196,7 +208,9 @@ V = ti.Vector.field(3, ti.f64, NC)
 Wv = ti.Vector.field(3, ti.f64, NC)
 Q = ti.Vector.field(4, ti.f64, NC)  # w, x, y, z
 M = ti.field(ti.f64, NC)
-I = ti.field(ti.f64, NC)
+I = ti.field(ti.f64, NC)  # the mean principal moment (the contact law's damping scale)
+Ib = ti.Vector.field(3, ti.f64, NC)  # principal moments
+Lw = ti.Vector.field(3, ti.f64, NC)  # angular momentum, world frame
 F = ti.Vector.field(3, ti.f64, NC)
 T = ti.Vector.field(3, ti.f64, NC)
 alive = ti.field(ti.i32, NC)
@@ -227,7 +241,8 @@ cyl = ti.field(ti.f64, 3)  # radius (0: none), bottom z, friction
 X.from_numpy(centres)
 Q.from_numpy(quats)
 M.from_numpy(mass_unit * scale ** 3)
-I.from_numpy(inertia_unit * scale ** 5)
+Ib.from_numpy(inertia_unit[None, :] * scale[:, None] ** 5)
+I.from_numpy(inertia_unit.mean() * scale ** 5)
 alive.fill(1)
 body.from_numpy((c_over_r * r_s * unit_offsets[None, :, :] * scale[:, None, None]).reshape(-1, 3))
 rad.from_numpy(np.repeat(r_s * scale, MEMBERS))
@@ -252,6 +267,11 @@ g = ti.Vector([0.0, 0.0, -9.81])
 def rotate(q, v):
     u = ti.Vector([q[1], q[2], q[3]])
     return v + 2.0 * u.cross(u.cross(v) + q[0] * v)
+
+
+@ti.func
+def rotate_back(q, v):
+    return rotate(ti.Vector([q[0], -q[1], -q[2], -q[3]]), v)
 
 
 @ti.func
@@ -352,7 +372,8 @@ def integrate(dt: ti.f64, drag: ti.f64):
     for a in range(NC):
         if alive[a]:
             V[a] = (V[a] + (F[a] / M[a] + g) * dt) * (1.0 - drag * dt)
-            Wv[a] = (Wv[a] + T[a] / I[a] * dt) * (1.0 - drag * dt)
+            Lw[a] = (Lw[a] + T[a] * dt) * (1.0 - drag * dt)
+            Wv[a] = rotate(Q[a], rotate_back(Q[a], Lw[a]) / Ib[a])
             X[a] += V[a] * dt
             w = Wv[a]
             q = Q[a]
@@ -370,7 +391,7 @@ def kinetic() -> ti.f64:
     e = 0.0
     for a in range(NC):
         if alive[a]:
-            e += 0.5 * M[a] * V[a].dot(V[a]) + 0.5 * I[a] * Wv[a].dot(Wv[a])
+            e += 0.5 * M[a] * V[a].dot(V[a]) + 0.5 * Wv[a].dot(Lw[a])
     return e
 
 
@@ -420,9 +441,8 @@ def spheres() -> tuple[np.ndarray, np.ndarray]:
 
 
 t0 = time.time()
-result = dict(case=case, c_over_r=c_over_r, members=MEMBERS, mu_r=mu_r, seed=seed, across=across, R_eq=R_eq,
-              r_sphere=r_s,
-              grains=NC, spheres=NS)
+result = dict(case=case, shape=GRAIN, c_over_r=c_over_r, members=MEMBERS, mu_r=mu_r, seed=seed, across=across,
+              R_eq=R_eq, r_sphere=r_s, grains=NC, spheres=NS)
 if case == "heap":
     cyl[0] = R_cyl
     cyl[1] = -1.0

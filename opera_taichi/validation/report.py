@@ -238,6 +238,11 @@ from the version in the header. The knobs, in the order to tune them:
    | tetrahedron, c 1.1 | 0.03 | 31.8 / 31.1 | 0.65 / 0.71 / 0.79 / 0.37 / 0.66 / 0.46 (0.61; 4 of 6) | | |
    | tetrahedron, c 1.2 | 0 | 33.0, 33.5 (seed 1), 32.8 (seed 2) / 30.2, 31.3 (seed 1) | 0.66 / 0.53 / 0.79 / 0.71 / 0.66 / 0.49 (0.64; 5 of 6) | 0.99 / 0.91 / 0.98 | 1.73 / 1.85 |
    | tetrahedron, c 1.2 | 0.05 | 31.0, 32.0 (seed 1) / 31.8, 32.3 (seed 1) | 0.48 / 0.75 / 0.77 / 0.64 / 0.34 / 0.70 (0.61; 4 of 6) | | |
+   | dimer, c 0.75 | 0 | 29.0 | | | |
+   | dimer, c 1.0 | 0 | 26.6 | | | |
+   | dimer, c 0.75 | 0.1 | 31.3 / 29.6 | 0.81 / 0.81 / 0.52 / 0.59 / 0.48 / 0.64 (0.64; 5 of 6) | 1.48 | |
+   | trimer, c 1.0 | 0 | 29.9 | | | |
+   | trimer, c 1.15 | 0 | 33.8, 35.0 (seed 1) / 31.6, 32.2 (seed 1) | 0.74 / 0.56 / 0.48 / 0.66 / 0.70 / 0.82 (0.66; 5 of 6) | 1.04 / 0.83 / 0.96 | 1.82 |
 
    The angular clump is the first grain model found that moves the two coarse gates the right way together: without
    rolling resistance it heaps at 33.0 / 33.5 / 32.8 deg at 12 across (seeds 0-2), where the spheres need 0.3 for
@@ -265,6 +270,24 @@ from the version in the header. The knobs, in the order to tune them:
    solver: that would need a rigid body per grain (pose, spin, inertia), whole clumps asleep and frozen, the pour
    turned at random and the bed's density matched on clumps, then the whole report again, for the coarse heap and
    the coarse columns alone.
+   **Fewer spheres a grain** (2026-12-07, later; the scout's `--shape=dimer|trimer`, each clump a rigid body with its
+   union's principal moments; the last rows of the table above). Two spheres on a line roll about their axis: without
+   rolling resistance they heap at 29.0 / 26.6 deg at 12 across (1.75 / 2 x as long as wide); with 0.1 of it, at 31.3
+   there but 29.6 at 16, and their wall reads 1.48 x Rankine. Three spheres in a triangle, almost touching (c 1.15;
+   they touch at 1.155), do what the tetrahedron does with one sphere fewer: without rolling resistance they heap at
+   33.8 / 35.0 deg at 12 across and 31.6 / 32.2 at 16 (seeds 0 / 1): inside the band at both resolutions but for seed
+   1 at 12 across, on its upper edge (35.04), falling with finer grains as the tetrahedron's heap falls but from
+   higher; their 4-grain columns spread 0.66 on average (five packings of six in the band), their wall reads 0.94 x
+   Rankine over three packings (a second run of seed 0: 1.08) and their blade 1.82 x the FEE, as every grain that
+   holds a heap draws. Rounder (c 1.0) they heap at 29.9. The trimer is the cheapest grain found that holds the
+   coarse heap, and still too dear for the speed gates: its spheres are 0.69 x the grain's radius, three of them make
+   about three times the contacts, and their softer contact (the mapping's stiffness follows the radius) lengthens
+   the substep only 1.2 x (0.213 against 0.177 ms for the wall's grains). The soil's kernels would do about 2.5 x the
+   spheres' work at the same grain size; with the kernels 65-80% of the main job's wall time (docs/performance.md), 8
+   cm trimers would run at about 0.8-0.9 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at
+   about 0.3: under both speed gates (1.0 and 0.5). That is an estimate from the work, since the solver has no
+   clumps; the stand-alone scout's wall took 21.1 s with trimers against 13.6 s with spheres (seed 0, one run each,
+   alone), a ratio its fixed costs (three kernel launches a step, the pour) dilute.
    **Boundaries.** The oracles assume soil below the wall's base and the blade's edge. With the (rough) pit floor
    at the wall's base the floor carried the wedge's heel (1.50 x Rankine at 0.2 H, still rising); with a smooth
    floor there the whole loose bed slid against the far pit wall. The cases put the pit floor H below the wall's
