@@ -280,14 +280,15 @@ from the version in the header. The knobs, in the order to tune them:
    higher; their 4-grain columns spread 0.66 on average (five packings of six in the band), their wall reads 0.94 x
    Rankine over three packings (a second run of seed 0: 1.08) and their blade 1.82 x the FEE, as every grain that
    holds a heap draws. Rounder (c 1.0) they heap at 29.9. The trimer is the cheapest grain found that holds the
-   coarse heap, and still too dear for the speed gates: its spheres are 0.69 x the grain's radius, three of them make
-   about three times the contacts, and their softer contact (the mapping's stiffness follows the radius) lengthens
-   the substep only 1.2 x (0.213 against 0.177 ms for the wall's grains). The soil's kernels would do about 2.5 x the
-   spheres' work at the same grain size; with the kernels 65-80% of the main job's wall time (docs/performance.md), 8
-   cm trimers would run at about 0.8-0.9 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at
-   about 0.3: under both speed gates (1.0 and 0.5). That is an estimate from the work, since the solver has no
-   clumps; the stand-alone scout's wall took 21.1 s with trimers against 13.6 s with spheres (seed 0, one run each,
-   alone), a ratio its fixed costs (three kernel launches a step, the pour) dilute.
+   coarse heap, and still too dear for the speed gates. Its spheres are 0.69 x the grain's radius, three of them
+   about triple the contacts, and their softer contact (the mapping's stiffness follows the radius) lengthens the
+   substep 1.2 x (0.213 against 0.177 ms for the wall's grains): about 2.5 x the spheres' work at the same grain
+   size, less where a clump's own spheres, never in contact, leave a neighbour's place empty. The scout's blade, all
+   awake, took 128.9 s with trimers against 72.6 s with spheres (seed 0, one run each, alone): 1.78 x. With the
+   kernels 65-80% of the main job's wall time (docs/performance.md), 1.8-2.5 x the kernels' work would put 8 cm
+   trimers at about 0.8-1.2 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at about
+   0.26-0.37, under the 0.5 that gate asks. An estimate, since the solver has no clumps: it would need to be 1.4-1.9
+   x faster at 5 cm before trimers could pass both speed gates.
    **Boundaries.** The oracles assume soil below the wall's base and the blade's edge. With the (rough) pit floor
    at the wall's base the floor carried the wedge's heel (1.50 x Rankine at 0.2 H, still rising); with a smooth
    floor there the whole loose bed slid against the far pit wall. The cases put the pit floor H below the wall's
