@@ -242,7 +242,7 @@ from the version in the header. The knobs, in the order to tune them:
    | dimer, c 1.0 | 0 | 26.6 | | | |
    | dimer, c 0.75 | 0.1 | 31.3 / 29.6 | 0.81 / 0.81 / 0.52 / 0.59 / 0.48 / 0.64 (0.64; 5 of 6) | 1.48 | |
    | trimer, c 1.0 | 0 | 29.9 | | | |
-   | trimer, c 1.15 | 0 | 33.8, 35.0 (seed 1) / 31.6, 32.2 (seed 1) | 0.74 / 0.56 / 0.48 / 0.66 / 0.70 / 0.82 (0.66; 5 of 6) | 1.04 / 0.83 / 0.96 | 1.82 |
+   | trimer, c 1.15 | 0 | 33.8, 35.0 (seed 1), 32.1 (seed 2) / 31.6, 32.2 (seed 1) | 0.74 / 0.56 / 0.48 / 0.66 / 0.70 / 0.82 (0.66; 5 of 6) | 1.04 / 0.83 / 0.96 | 1.82 |
 
    The angular clump is the first grain model found that moves the two coarse gates the right way together: without
    rolling resistance it heaps at 33.0 / 33.5 / 32.8 deg at 12 across (seeds 0-2), where the spheres need 0.3 for
@@ -275,18 +275,18 @@ from the version in the header. The knobs, in the order to tune them:
    rolling resistance they heap at 29.0 / 26.6 deg at 12 across (1.75 / 2 x as long as wide); with 0.1 of it, at 31.3
    there but 29.6 at 16, and their wall reads 1.48 x Rankine. Three spheres in a triangle, almost touching (c 1.15;
    they touch at 1.155), do what the tetrahedron does with one sphere fewer: without rolling resistance they heap at
-   33.8 / 35.0 deg at 12 across and 31.6 / 32.2 at 16 (seeds 0 / 1): inside the band at both resolutions but for seed
-   1 at 12 across, on its upper edge (35.04), falling with finer grains as the tetrahedron's heap falls but from
-   higher; their 4-grain columns spread 0.66 on average (five packings of six in the band), their wall reads 0.94 x
-   Rankine over three packings (a second run of seed 0: 1.08) and their blade 1.82 x the FEE, as every grain that
-   holds a heap draws. Rounder (c 1.0) they heap at 29.9. The trimer is the cheapest grain found that holds the
-   coarse heap, and still too dear for the speed gates. Its spheres are 0.69 x the grain's radius, three of them
-   about triple the contacts, and their softer contact (the mapping's stiffness follows the radius) lengthens the
-   substep 1.2 x (0.213 against 0.177 ms for the wall's grains): about 2.5 x the spheres' work at the same grain
-   size, less where a clump's own spheres, never in contact, leave a neighbour's place empty. The scout's blade, all
-   awake, took 128.9 s with trimers against 72.6 s with spheres (seed 0, one run each, alone): 1.78 x. With the
-   kernels 65-80% of the main job's wall time (docs/performance.md), 1.8-2.5 x the kernels' work would put 8 cm
-   trimers at about 0.8-1.2 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at about
+   33.8 / 35.0 / 32.1 deg at 12 across (seeds 0-2) and 31.6 / 32.2 at 16 (seeds 0 / 1): inside the band at both
+   resolutions but for seed 1 at 12 across, on its upper edge (35.04), falling with finer grains as the tetrahedron's
+   heap falls but from higher; their 4-grain columns spread 0.66 on average (five packings of six in the band), their
+   wall reads 0.94 x Rankine over three packings (a second run of seed 0: 1.08) and their blade 1.82 x the FEE, as
+   every grain that holds a heap draws. Rounder (c 1.0) they heap at 29.9. The trimer is the cheapest grain found
+   that holds the coarse heap, and still too dear for the speed gates. Its spheres are 0.69 x the grain's radius,
+   three of them about triple the contacts, and their softer contact (the mapping's stiffness follows the radius)
+   lengthens the substep 1.2 x (0.213 against 0.177 ms for the wall's grains): about 2.5 x the spheres' work at the
+   same grain size, less where a clump's own spheres, never in contact, leave a neighbour's place empty. The scout's
+   blade, all awake, took 128.9 s with trimers against 72.6 s with spheres (seed 0, one run each, alone): 1.78 x.
+   With the kernels 65-80% of the main job's wall time (docs/performance.md), 1.8-2.5 x the kernels' work would put 8
+   cm trimers at about 0.8-1.2 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at about
    0.26-0.37, under the 0.5 that gate asks. An estimate, since the solver has no clumps: it would need to be 1.4-1.9
    x faster at 5 cm before trimers could pass both speed gates.
    **Boundaries.** The oracles assume soil below the wall's base and the blade's edge. With the (rough) pit floor
