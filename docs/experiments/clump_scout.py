@@ -13,23 +13,25 @@ radius, 1 +- 0.1 uniform (polydispersity). Cell lists are rebuilt every step and
 not bit-reproducible (a seed's grain count varies by a few).
 
     python docs/experiments/clump_scout.py heap|column|wall|blade C MU_R [SEED] [ACROSS] [--shape=tetra|dimer|trimer]
+        [--aspect=A]
 
 heap: a cylinder ACROSS volume-equivalent diameters across (default 12, the coarse repose case's; 0.4 m), filled
 with 0.064 m3 of poured grains, is lifted at 0.05 m/s off a rough floor; the flank angle is read with the project's
-heap_angles. column: a column ACROSS (default 8) diameters long and half as tall (a = 0.5), in a slice 8 diameters
-wide between smooth side walls, poured into its pit; the pit's front wall goes and the run-out is read with the
-project's runout_length. wall: the passive wall case (H 0.3 m, ACROSS (default 4) diameters across H, phi 35 deg, a
-smooth wall at 0.1 m/s for 0.2 H, the pit's front face holding the soil below its base), read with the project's
-peak_of_travel_average over Rankine's thrust at the settled bed's density. blade: the plane-strain blade a90 delta0
-d 0.3 m (the gate's cut, ACROSS (default 4) diameters across d, phi 35 deg): the same smooth face, its edge d deep
-over d of soil, 3 d of travel at 0.1 m/s through a bed 6.5 d long in a slab 8 diameters wide, spoil whose centre
-rises R/2 above the ground taken out (`soil.clear_above`), the mean draft over d to 3 d of travel over the
-earthmoving equation's (for this cut, Rankine's thrust). Every bed is poured as a jittered lattice of grains turned
-at random. C: the clump's centre distance in sphere radii (0: spheres). MU_R: rolling resistance (the mapping's 0.3
-for sand). Prints one JSON line.
+heap_angles. column: a column ACROSS (default 8) diameters long and A times as tall (`--aspect=A`, default 0.5), in
+a slice 8 diameters wide between smooth side walls, poured into its pit; the pit's front wall goes and the run-out
+is read with the project's runout_length. wall: the passive wall case (H 0.3 m, ACROSS (default 4) diameters across
+H, phi 35 deg, a smooth wall at 0.1 m/s for 0.2 H, the pit's front face holding the soil below its base), read with
+the project's peak_of_travel_average over Rankine's thrust at the settled bed's density. blade: the plane-strain
+blade a90 delta0 d 0.3 m (the gate's cut, ACROSS (default 4) diameters across d, phi 35 deg): the same smooth face,
+its edge d deep over d of soil, 3 d of travel at 0.1 m/s through a bed 6.5 d long in a slab 8 diameters wide, spoil
+whose centre rises R/2 above the ground taken out (`soil.clear_above`), the mean draft over d to 3 d of travel over
+the earthmoving equation's (for this cut, Rankine's thrust). Every bed is poured as a jittered lattice of grains
+turned at random. C: the clump's centre distance in sphere radii (0: spheres). MU_R: rolling resistance (the
+mapping's 0.3 for sand). Prints one JSON line.
 
 Results (2026-12-07, the 2-vCPU Intel Xeon, runs side by side): docs/validation.md, calibration note 1, "Clumps,
-scouted outside the project" and "Fewer spheres a grain". A coarse heap takes 2-9 minutes, a column or a wall 15-40 s, a blade 1-3 minutes.
+scouted outside the project" and "Fewer spheres a grain". A coarse heap takes 2-9 minutes, a column or a wall 15-40
+s, a blade 1-3 minutes.
 """
 import json
 import math
@@ -44,15 +46,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 ti.init(arch=ti.cpu, default_fp=ti.f64, log_level="error")
 from kernels import dem  # noqa: E402
 from opera_taichi import soil as soil_model  # noqa: E402
+from opera_taichi.validation import references  # noqa: E402
 from opera_taichi.validation.cases import heap_angles, peak_of_travel_average, runout_length  # noqa: E402
 
 SHAPES = ("tetra", "dimer", "trimer")
-shape = "tetra"
-for arg in [a for a in sys.argv[1:] if a.startswith("--shape=")]:
-    shape = arg.split("=", 1)[1]
+options = dict(shape="tetra", aspect="0.5")
+for arg in [a for a in sys.argv[1:] if a.startswith(("--shape=", "--aspect="))]:
+    key, value = arg[2:].split("=", 1)
+    options[key] = value
     sys.argv.remove(arg)
 try:
-    if shape not in SHAPES:
+    shape = options["shape"]
+    aspect = float(options["aspect"])
+    if shape not in SHAPES or not 0.25 <= aspect <= 2.0:
         raise ValueError
     case = sys.argv[1]
     c_over_r = float(sys.argv[2])
@@ -64,7 +70,7 @@ try:
         raise ValueError
 except (IndexError, ValueError):
     print("usage: clump_scout.py heap|column|wall|blade C (0-1.5) MU_R (0-1) [SEED] [ACROSS 4-24] "
-          "[--shape=tetra|dimer|trimer]", file=sys.stderr)
+          "[--shape=tetra|dimer|trimer] [--aspect=A (column, 0.25-2)]", file=sys.stderr)
     sys.exit(2)
 rng = np.random.default_rng(seed)
 FACE = case in ("wall", "blade")  # a smooth vertical face pushed into a pit of soil
@@ -135,8 +141,8 @@ elif FACE:
     dom_hi = np.array([LX + 0.05, HALF_Y + 0.01, 1.0])
 else:
     W = 8 * 2 * R_eq  # the slice: 8 diameters wide at every resolution
-    H0 = 0.5 * L0
-    reach = L0 * (1.0 + 1.3 * 0.9)
+    H0 = aspect * L0
+    reach = L0 * (1.0 + 1.3 * max(references.runout_lube(aspect), references.runout_lajeunesse(aspect)))
     dom_lo = np.array([-0.05, -0.01, -0.05])
     dom_hi = np.array([L0 + reach + 0.1, W + 0.01, 4 * H0])
 # planes: point, inward normal, friction (floor and back wall rough, slice sides smooth); the last is the pit's
@@ -441,8 +447,8 @@ def spheres() -> tuple[np.ndarray, np.ndarray]:
 
 
 t0 = time.time()
-result = dict(case=case, shape=GRAIN, c_over_r=c_over_r, members=MEMBERS, mu_r=mu_r, seed=seed, across=across,
-              R_eq=R_eq, r_sphere=r_s, grains=NC, spheres=NS)
+result = dict(case=case, shape=GRAIN, aspect=aspect, c_over_r=c_over_r, members=MEMBERS, mu_r=mu_r, seed=seed,
+              across=across, R_eq=R_eq, r_sphere=r_s, grains=NC, spheres=NS)
 if case == "heap":
     cyl[0] = R_cyl
     cyl[1] = -1.0

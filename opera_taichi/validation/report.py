@@ -279,14 +279,17 @@ from the version in the header. The knobs, in the order to tune them:
    resolutions but for seed 1 at 12 across, on its upper edge (35.04), falling with finer grains as the tetrahedron's
    heap falls but from higher; their 4-grain columns spread 0.66 on average (five packings of six in the band), their
    wall reads 0.94 x Rankine over three packings (a second run of seed 0: 1.08) and their blade 1.82 x the FEE, as
-   every grain that holds a heap draws. Rounder (c 1.0) they heap at 29.9. The trimer is the cheapest grain found
-   that holds the coarse heap, and still too dear for the speed gates. Its spheres are 0.69 x the grain's radius,
-   three of them about triple the contacts, and their softer contact (the mapping's stiffness follows the radius)
-   lengthens the substep 1.2 x (0.213 against 0.177 ms for the wall's grains): about 2.5 x the spheres' work at the
-   same grain size, less where a clump's own spheres, never in contact, leave a neighbour's place empty. The scout's
-   blade, all awake, took 128.9 s with trimers against 72.6 s with spheres (seed 0, one run each, alone): 1.78 x.
-   With the kernels 65-80% of the main job's wall time (docs/performance.md), 1.8-2.5 x the kernels' work would put 8
-   cm trimers at about 0.8-1.2 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at about
+   every grain that holds a heap draws. Rounder (c 1.0) they heap at 29.9. At a = 1 (the scout's `--aspect=1`, 8
+   across, 8 grains tall) their columns spread 0.99 / 1.22 / 1.64 / 1.19 / 1.45 / 1.19 (seeds 0-5, mean 1.28, five of
+   six in the band's 1.02-2.07; the spheres with 0.3 of rolling resistance 1.20 / 1.08 / 0.97 over seeds 0-2), so the
+   run-out slope between the two means is 0.96, inside its 1.0 +- 0.15. The trimer is the cheapest grain found that
+   holds the coarse heap, and still too dear for the speed gates. Its spheres are 0.69 x the grain's radius, three of
+   them about triple the contacts, and their softer contact (the mapping's stiffness follows the radius) lengthens
+   the substep 1.2 x (0.213 against 0.177 ms for the wall's grains): about 2.5 x the spheres' work at the same grain
+   size, less where a clump's own spheres, never in contact, leave a neighbour's place empty. The scout's blade, all
+   awake, took 128.9 s with trimers against 72.6 s with spheres (seed 0, one run each, alone): 1.78 x. With the
+   kernels 65-80% of the main job's wall time (docs/performance.md), 1.8-2.5 x the kernels' work would put 8 cm
+   trimers at about 0.8-1.2 x real time on this host, where the spheres run 1.64-1.85, and 5 cm ones at about
    0.26-0.37, under the 0.5 that gate asks. An estimate, since the solver has no clumps: it would need to be 1.4-1.9
    x faster at 5 cm before trimers could pass both speed gates.
    **Boundaries.** The oracles assume soil below the wall's base and the blade's edge. With the (rough) pit floor
