@@ -260,9 +260,16 @@ def test_report_from_metrics(tmp_path):
                *[m("column_collapse", f"column_a{a:g}_seed{seed}", value, 0.75 * 2 * a, True, aspect_ratio=a,
                    seed=seed)
                  for a, values in ((0.5, (0.6, 0.8, 0.7)), (1.0, (1.3, 1.5, 1.4))) for seed, value in enumerate(values)]]
+    unsettled = "soil: the bed did not come to rest in soil.settle_time = 1.1 s (a grain still moved at 0.181 m/s)"
+    results[4]["warnings"] = [unsettled]  # column_a0.5_seed0
     path = report.write_report(results, tmp_path / "validation.md", "opera-taichi validate-physics all")
     text = path.read_text()
     assert "opera-taichi validate-physics all" in text
+    # a verdict on a run that warned is listed with its warning, and only that run
+    warned = text.split("Runs that warned")[1].split("\n\n")[1].splitlines()
+    assert warned == [f"- column_a0.5_seed0: {unsettled}"]
+    quiet = report.write_report([dict(r, warnings=[]) for r in results], tmp_path / "quiet.md", "c").read_text()
+    assert "Runs that warned" not in quiet
     assert (tmp_path / "validation" / "runout.png").is_file()
     assert (tmp_path / "validation" / "blade_force_depth.png").is_file()
     gates = {g["label"]: g for g in report.derived_gates(results)}

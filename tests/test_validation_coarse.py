@@ -22,7 +22,8 @@ def _run(tmp_path, case, params):
     m = cases.run_case(case, params, "coarse", tmp_path / case, arch="cpu")
     on_disk = json.loads((tmp_path / case / "metrics.json").read_text())
     assert on_disk["case"] == case and on_disk["resolution"] == "coarse"
-    assert (tmp_path / case / "run" / "manifest.json").is_file()
+    manifest = json.loads((tmp_path / case / "run" / "manifest.json").read_text())
+    assert on_disk["warnings"] == manifest.get("run_warnings", [])  # what the report lists beside the verdict
     return m
 
 

@@ -60,8 +60,11 @@ def test_each_model_is_gated_on_its_own_runs(tmp_path):
 def test_the_report_has_both_columns_and_the_plot(tmp_path):
     results = _results(1.79, 1.15, 1.10)
     del results["blade_a90_d0.3_n12_wedge"]
+    stacked = "soil: 77% of the settled bed's grains rest straight on the grain beneath"
+    results["passive_wall_H0.3_n4_seed1"]["warnings"] = [stacked]
     path = resolution.write_study(results, resolution.study_gates(results), tmp_path / "resolution.md", "cmd")
     text = path.read_text()
+    assert f"\n- passive_wall_H0.3_n4_seed1: {stacked}\n" in text and text.count("\n- ") == 1  # the run that warned
     assert "| 4 | 1,000 | 4957 | 1.790 | 10 | 3185 | 1.150 | 10 |" in text
     assert "| 12 | 1,000 | 4957 | 1.790 | 10 | not run | - | - |" in text
     assert "soil wedge: draft / FEE (within 25%) | 1.150 | 1.000 | +15.0% | pass |" in text

@@ -698,10 +698,20 @@ def _score(case: str, p: dict, geo: dict, sets: list[str], resolution: str, out:
                "reference": reference, "relative_error": rel, "passed": passed, "gate": m.pop("gate"),
                "parameters": _si_params(p), "resolution": resolution, "particle_radius_m": geo["radius"],
                "particles": particles, "wall_time_s": wall_time_s, "run_dir": str(run_dir),
-               "overrides": sets, **m}
+               "overrides": sets, "warnings": _run_warnings(run_dir), **m}
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float) + "\n")
     return metrics
+
+
+def _run_warnings(run_dir: Path) -> list[str]:
+    """What the run warned of (its manifest's run_warnings: a bed that had not come to rest, a stacked bed, ...):
+    the report lists them beside its verdicts."""
+    try:
+        warnings = json.loads((Path(run_dir) / "manifest.json").read_text()).get("run_warnings") or []
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [str(w) for w in warnings] if isinstance(warnings, list) else []
 
 
 def _run_critical_height(p: dict, resolution: str, out: Path, arch, quiet: bool, reuse_only: bool = False):
@@ -721,7 +731,8 @@ def _run_critical_height(p: dict, resolution: str, out: Path, arch, quiet: bool,
 
     def particles_of() -> dict:
         return {"particles": max(m["particles"] for m in runs), "wall_time_s": sum(m["wall_time_s"] for m in runs),
-                "particle_radius_m": runs[0]["particle_radius_m"]}
+                "particle_radius_m": runs[0]["particle_radius_m"],
+                "warnings": list(dict.fromkeys(w for m in runs for w in m.get("warnings") or []))}  # its cuts'
 
     return _critical_metrics(p, resolution, out, cut, particles_of)
 

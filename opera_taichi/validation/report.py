@@ -695,6 +695,15 @@ def _fmt(v) -> str:
     return f"{v:.4g}"
 
 
+def warned_runs(labelled: list[tuple[str, dict]]) -> list[str]:
+    """Markdown lines listing the runs whose run warned (metrics' `warnings`), after a table of them; none: []."""
+    warned = [f"- {label}: {w}" for label, m in labelled for w in m.get("warnings") or []]
+    if not warned:
+        return []
+    return ["", "Runs that warned (each run's manifest, `run_warnings`): a verdict on such a run is read with it.", "",
+            *warned]
+
+
 def _verdict(passed) -> str:
     return "shown" if passed is None else "pass" if passed else "FAIL"
 
@@ -744,6 +753,7 @@ def write_report(results: list[dict], report_path: Path, command: str, not_run: 
                      f"{r['resolution']} | {r.get('particles', '-')} | {r['wall_time_s']:.0f} |")
     for label in not_run:
         lines.append(f"| {label} | - | not run | - | - | not run | - | - | - |")
+    lines += warned_runs([(r.get("label", r["case"]), r) for r in results])
     from .cases import ACROSS
 
     named = [res for res in resolutions if res in ACROSS["blade_cut"]]

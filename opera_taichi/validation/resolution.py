@@ -31,7 +31,7 @@ from pathlib import Path
 
 from ..errors import DivergenceError, UserError
 from .cases import check_case_folder, finished_metrics, run_case
-from .report import SAND, solver_label
+from .report import SAND, solver_label, warned_runs
 
 CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
 GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gate run: 20 across
@@ -272,6 +272,7 @@ def study_section(results: dict[str, dict], gates: list[dict], plot_dir: Path, l
             lo, hi = m["bracket_m"]
             lines.append(f"| {m['parameters']['preset']} | {m['resolution']} | {m['n_across']} | {m['measured']:.3f} | "
                          f"{lo:.3f}-{hi:.3f} | {m['reference']:.3f} | {_ratio(m):.3f} |")
+    lines += warned_runs(list(results.items()))
     plot = _plot(conv, conv_wedge, plot_dir)
     if plot is not None:
         lines += ["", f"![draft over FEE against grains across the cut]({plot_dir.name}/{plot.name})"]
