@@ -201,6 +201,16 @@ from the version in the header. The knobs, in the order to tune them:
    about the seeds' spread (the coarse heap 29.7-31.4 deg; the 4-grain column, levelled at rest, 0.34-0.64), under
    both bands on average: a longer settle is no fix for them, and it changes every bed (the report again). The main
    job's 16 and 12 cm beds, cut with the soil wedge, would gain 10-11% of grains from it.
+   **The columns are released at rest** (2026-12-07, in the report). The column collapses settle 3 x the pit's
+   landing time (`cases.COLUMN_SETTLE`): after the landing time alone the coarse column at a = 0.5 still moved at
+   0.13-0.18 m/s when it was released (seeds 0-2; its runs warned), and a column released moving collapses by that
+   motion, not by its weight. Every column now comes to rest first (tests/test_validation_coarse.py checks the
+   4-grain one). The report's columns read, at default, 0.745 / 0.790 / 0.594 at a = 0.5 and 1.233 / 1.318 / 1.345 at
+   a = 1 (0.801 / 0.727 / 0.736 and 1.406 / 1.304 / 1.540 before), a run-out slope of 0.87 (0.91), and 3.117 at a = 2
+   (the same bits: that pit had come to rest); coarse, 0.430 / 0.607 / 0.637 (0.500 / 0.626 / 0.000), 1.297 / 1.203 /
+   1.324 (1.433 / 1.276 / 1.079) and 2.477 (2.266), a slope of 1.19 (1.75): one packing of three under the band at a
+   = 0.5 and the slope 0.04 over its gate, where two packings and the slope failed by far. The 4-grain column stays
+   50-71% stacked.
    **A random pour packs the deep beds denser** (2026-11-28, the passive wall at default, 10 grains across H, in a
    bed 20 grains deep, seeds 0 / 1 / 2): the lattice pour settles at a solid fraction of 0.480 and reads 1.024 /
    1.082 / 1.059 x Rankine (mean 1.055); a random sideways start of 1.5 sqrt(g d) settles at 0.503-0.505 and reads
