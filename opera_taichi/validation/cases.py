@@ -218,8 +218,8 @@ def _rot_y(pitch: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-# a column released while its grains still move collapses by that motion: a pit 4 grains deep (the coarse column at
-# a = 0.5) was still moving after the pit's landing time (its runs warned), and rests within 3 x of it
+# a column must be released at rest, or its grains' motion, not its weight, drives the collapse: a pit 4 grains
+# deep (the coarse column at a = 0.5) needs about 3 x the landing time to come to rest
 COLUMN_SETTLE = 3.0
 
 
