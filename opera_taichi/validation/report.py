@@ -187,20 +187,20 @@ from the version in the header. The knobs, in the order to tune them:
    its share of `soil.settle_time`, and many beds reach the levelling (0.8 x settle_time) with grains still moving:
    the coarse column at a = 0.5 at 0.37 m/s, the coarse heap's hopper fill at 0.11, the default column at 0.43, the
    4-grain wall at 0.51, the main job's 16 and 12 cm beds at 0.18 and 0.19; the main job's 8 cm bed and the default
-   wall come to rest first. The coarse column at a = 0.5 is still moving at its release (its runs warn). Resting the
-   pour before it is levelled (up to 4 x settle_time more) levels each at rest, but a stack that has jammed stays as
-   it stands: the 16 and 12 cm beds keep 384 and 991 grains, 94% and 73% stacked; the coarse column spreads 0.42 /
-   0.64 / 0.64 (seeds 0-2, 206-209 grains against 196), the coarse heap reads 30.3 / 31.4 / 30.7 deg. A longer
-   landing lets the stack collapse before it jams: with settle_time 12 s instead of 4 the main job's 16 / 12 / 8 cm
-   beds hold 424 / 1,096 / 3,763 grains (384 / 991 / 3,756), solid fraction 0.41 / 0.44 / 0.45 (0.37 / 0.40 / 0.45),
-   stacked 27% / 32% / 15% (94% / 73% / 15%), and the 12 cm site with 6 s 24,401 grains, 25% stacked and no warning
-   (22,163, 65%, warned at 4 s); with 3 x the cases' settle time the coarse column spreads 0.43 / 0.61 / 0.64 / 0.34
-   / 0.55 / 0.62 (seeds 0-5, mean 0.53; 202-222 grains, 36-71% stacked), the coarse heap 31.1 deg (seed 0). Where the
-   stack jams is decided by round-off at a stage's end: the tests' pit (2 cm grains, 0.16 m deep) rested before
-   levelling holds 310 grains at settle_time 0.5-1 s and 336 at 2-4 s. So the coarse gates move with the settle by
-   about the seeds' spread (the coarse heap 29.7-31.4 deg; the 4-grain column, levelled at rest, 0.34-0.64), under
-   both bands on average: a longer settle is no fix for them, and it changes every bed (the report again). The main
-   job's 16 and 12 cm beds, cut with the soil wedge, would gain 10-11% of grains from it.
+   wall come to rest first. The coarse column at a = 0.5 was still moving at its release (its runs warned; below).
+   Resting the pour before it is levelled (up to 4 x settle_time more) levels each at rest, but a stack that has
+   jammed stays as it stands: the 16 and 12 cm beds keep 384 and 991 grains, 94% and 73% stacked; the coarse column
+   spreads 0.42 / 0.64 / 0.64 (seeds 0-2, 206-209 grains against 196), the coarse heap reads 30.3 / 31.4 / 30.7 deg.
+   A longer landing lets the stack collapse before it jams: with settle_time 12 s instead of 4 the main job's 16 / 12
+   / 8 cm beds hold 424 / 1,096 / 3,763 grains (384 / 991 / 3,756), solid fraction 0.41 / 0.44 / 0.45 (0.37 / 0.40 /
+   0.45), stacked 27% / 32% / 15% (94% / 73% / 15%), and the 12 cm site with 6 s 24,401 grains, 25% stacked and no
+   warning (22,163, 65%, warned at 4 s); with 3 x the cases' settle time the coarse column spreads 0.43 / 0.61 / 0.64
+   / 0.34 / 0.55 / 0.62 (seeds 0-5, mean 0.53; 202-222 grains, 36-71% stacked), the coarse heap 31.1 deg (seed 0).
+   Where the stack jams is decided by round-off at a stage's end: the tests' pit (2 cm grains, 0.16 m deep) rested
+   before levelling holds 310 grains at settle_time 0.5-1 s and 336 at 2-4 s. So the coarse gates move with the
+   settle by about the seeds' spread (the coarse heap 29.7-31.4 deg; the 4-grain column, levelled at rest,
+   0.34-0.64), under both bands on average: a longer settle is no fix for them, and it changes every bed (the report
+   again). The main job's 16 and 12 cm beds, cut with the soil wedge, would gain 10-11% of grains from it.
    **The columns are released at rest** (2026-12-07, in the report). The column collapses settle 3 x the pit's
    landing time (`cases.COLUMN_SETTLE`): after the landing time alone the coarse column at a = 0.5 still moved at
    0.13-0.18 m/s when it was released (seeds 0-2; its runs warned), and a column released moving collapses by that
