@@ -13,6 +13,7 @@ from ..errors import UserError
 from .cases import check_case_folder, check_resumed_resolution, finished_metrics, run_case, travel_average
 
 SAND = {"friction_deg": 35.0, "density": 1700.0, "preset": "sand"}
+COLUMN_SEEDS = tuple(range(6))   # the packings of each column at a <= 1: the run-out slope takes their means
 
 # (label, case, parameters): the gates of the issue "Validation suite"
 def gate_set() -> list[tuple[str, str, dict]]:
@@ -28,10 +29,10 @@ def gate_set() -> list[tuple[str, str, dict]]:
         *[(f"blade_3d_a90_d0.2_w{w:.1f}", "blade_cut", {**SAND, "depth": 0.2, "plane_strain": 0, "width": w,
                                                          "rake_deg": 90.0, "delta_deg": 0.0}) for w in (1.5, 1.0)],
         ("passive_wall_H0.3", "passive_wall", {**SAND, "height": 0.3}),
-        # the run-out's front is a few grains: at 16 across L0 it read 0.51-0.69 at a = 0.5 and 1.18-1.40 at a = 1
-        # over seeds 0-3 (a slope of 0.78-1.31 from one seed), so the slope gate takes the mean of three packings
+        # a column's run-out spreads by 0.1 L0 between packings, so the slope between two means of three has a
+        # standard error of 0.12-0.2, as wide as its gate; of six, 0.09-0.15 (calibration note 1)
         *[(f"column_a{a:g}_seed{seed}", "column_collapse", {"aspect_ratio": a, "preset": "sand", "seed": seed})
-          for a in (0.5, 1.0) for seed in (0, 1, 2)],
+          for a in (0.5, 1.0) for seed in COLUMN_SEEDS],
         ("column_a2", "column_collapse", {"aspect_ratio": 2.0, "preset": "sand"}),
         ("repose_sand", "repose", {"preset": "sand"}),
         ("repose_glass_beads", "repose", {"preset": "glass_beads"}),
@@ -211,6 +212,34 @@ from the version in the header. The knobs, in the order to tune them:
    1.324 (1.433 / 1.276 / 1.079) and 2.477 (2.266), a slope of 1.19 (1.75): one packing of three under the band at a
    = 0.5 and the slope 0.04 over its gate, where two packings and the slope failed by far. The 4-grain column stays
    50-71% stacked.
+   **Six packings a column, and the run-out against the grains across L0** (2026-12-07, later; `validate-physics
+   column_collapse --resolution N --param aspect_ratio=A --param seed=S`, seeds 0-5, one run each on the idle 2-vCPU
+   Intel host; at 8 and 16 across they are the report's runs, to the bit). The mean run-out of six packings, how many
+   lie in the band (0.51-1.03 at a = 0.5, 1.02-2.07 at a = 1), and the slope between the two means with its standard
+   error from the packings' spread:
+
+   | grains across L0 (tall at a = 0.5) | a = 0.5 | a = 1 | slope |
+   |---|---|---|---|
+   | 6 (3) | 0.23 (1 of 6; 3 stand as poured) | 1.19 (5 of 6) | 2.35 +- 0.73 |
+   | 8, coarse (4) | 0.530 (4 of 6) | 1.230 (6 of 6) | 1.21 +- 0.15 |
+   | 12 (6) | 0.585 (4 of 6) | 1.300 (6 of 6) | 1.15 +- 0.11 |
+   | 16, default (8) | 0.644 (6 of 6) | 1.318 (6 of 6) | 1.03 +- 0.10 |
+   | 24 (12) | 0.654 (6 of 6) | 1.500 (6 of 6) | 1.20 +- 0.09 |
+
+   At a = 0.5 the run-out grows with the grains across L0 and levels off at about 0.65 (Lube's law: 0.6) from 8
+   grains tall; under that a packing spreads or stands by how its few layers stacked (at 3 grains tall three packings
+   of six stand as poured, wholly stacked). Others find a column's run-out depends on its size over the grain's, not
+   on the aspect ratio alone (Warnett et al. 2014, experiments, Granular Matter 16:115; Man et al., DEM, Geophysical
+   Research Letters, arXiv:2012.03287), and the laws were measured on columns of many more grains. The slope is a
+   statistic of few packings: from three its standard error is 0.12-0.21 at 8-24 across, as wide as its gate's 0.15;
+   the report's default columns read 0.87 on seeds 0-2 and 1.21 on seeds 3-5, those at 24 across 1.28 and 1.12. Over
+   six packings the model's slope reads 1.03-1.21 at every resolution from 8 across, with no trend: the coarse
+   slope's failure is not a coarse soil's drift, and the default's pass lies within about one standard error of the
+   gate's edge. Hence six packings at a = 0.5 and 1 in the gate set since (`report.COLUMN_SEEDS`; the report's added
+   runs repeated the scratch runs to the bit): the default slope reads 1.035 and the coarse one 1.213, and at coarse
+   seeds 0 and 3 lie under the band at a = 0.5 (0.430, 0.339). A slice twice as wide (16 diameters, the same seeds at
+   8 across) spreads every packing further (means 0.588 and 1.364; five and six of six in the band), its front the
+   farthest of more grains, and leaves the slope at 1.21: the slice stays as the gates were set.
    **A random pour packs the deep beds denser** (2026-11-28, the passive wall at default, 10 grains across H, in a
    bed 20 grains deep, seeds 0 / 1 / 2): the lattice pour settles at a solid fraction of 0.480 and reads 1.024 /
    1.082 / 1.059 x Rankine (mean 1.055); a random sideways start of 1.5 sqrt(g d) settles at 0.503-0.505 and reads

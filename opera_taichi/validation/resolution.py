@@ -37,7 +37,7 @@ CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
 GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gate run: 20 across
 STUDY_FOLDER = "resolution"   # the study's runs, inside the gate set's folder: `all` and `resolution` share them
 # the wall at 4 grains across H read 1.17, 0.77 and 0.99 x Rankine on seeds 0, 1 and 2 (2026-11-26): its gate takes
-# the mean of three packings, as the run-out slope does
+# the mean of three packings, as the run-out slope takes the means of its packings
 WALL_SEEDS = (0, 1, 2)
 
 
