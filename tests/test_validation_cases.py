@@ -243,6 +243,20 @@ def test_heap_angles_of_a_cone():
     assert math.degrees(np.mean(angles)) == pytest.approx(31.0, abs=1.0)
 
 
+def test_the_hopper_is_the_same_at_every_resolution_down_to_its_narrowest_outlet(tmp_path):
+    p = cases.parse_params("repose", {"preset": "sand"})
+    outlet = {res: cases.build_overrides("repose", p, res, work_dir=tmp_path / res)[1]
+              for res in ("coarse", "default", "fine", "8")}
+    radius = {res: g["radius"] for res, g in outlet.items()}
+    assert radius["coarse"] > radius["default"] > radius["fine"]  # the grains differ ...
+    for res in ("coarse", "fine"):  # ... the hopper does not
+        assert outlet[res]["outlet"] == pytest.approx(outlet["default"]["outlet"], rel=1e-12)
+    assert outlet["default"]["outlet"] == pytest.approx(cases.HOPPER_OUTLET * radius["default"])
+    # 8 grains across the column: the same outlet would be 5 grains across; it stays 7.5 wide against arching
+    assert outlet["8"]["outlet"] == pytest.approx(cases.HOPPER_OUTLET_MIN * radius["8"])
+    assert outlet["8"]["outlet"] > outlet["default"]["outlet"]
+
+
 def test_report_from_metrics(tmp_path):
     def m(case, label, measured, reference, passed, **params):
         return dict(case=case, label=label, metric="x", unit="N/m", measured=measured, reference=reference,

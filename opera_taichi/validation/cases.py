@@ -29,7 +29,8 @@ Geometry (all quasi-static set-ups; x forward, z up, ground at z = 0):
   column_collapse and vertical_cut are quasi-2-D slices between the domain's y walls (8 particle diameters
   apart) with the domain's x- wall as the back wall. repose drops a settled square column into a conical
   hopper whose outlet starts 3 R above the ground and lifts at 0.05 m/s: the outlet rides on the apex of the
-  heap it pours (soil.md: pour or lift a cylinder); the metric is the mean of the heap's four flank fits.
+  heap it pours (soil.md: pour or lift a cylinder); the metric is the mean of the heap's four flank fits. The
+  hopper is the same at every resolution down to 12 grains across the column (its outlet at least 7.5 across).
 """
 from __future__ import annotations
 
@@ -125,7 +126,8 @@ ACROSS = {
 ACROSS_RANGE = (3, 64)   # a numeric --resolution: 3 is the coarse 3-D blade; 64 across d 0.3 m is ~0.33 M grains in
                          # plane strain, ~17 M for the 3-D blade
 REPOSE_COLUMN = 0.4      # m, side and height of the settled column poured through the hopper
-HOPPER_OUTLET = 10.0     # x R: outlet radius (10 particle diameters across: no arching)
+HOPPER_OUTLET = 10.0     # x R at the default resolution: outlet radius (10 particle diameters across: no arching)
+HOPPER_OUTLET_MIN = 7.5  # x R: the narrowest outlet (at 12 across the column, 4 heaps of 4 emptied)
 HOPPER_WALL = math.radians(60.0)  # hopper walls from the horizontal (steeper than any repose angle: they empty)
 HOPPER_LIFT_SPEED = 0.05  # m/s
 WALL_SPEED = 0.1         # m/s, passive wall (inertial pressure rho v^2 ~ 17 Pa: negligible)
@@ -381,7 +383,9 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
         R = D / (2 * n)
         extent = 2.0 * D
         xp = extent + 0.05
-        outlet = HOPPER_OUTLET * R
+        # the same hopper at every resolution, as the same column is: an outlet scaled with the grain would be wider
+        # at coarse resolution and pour a flatter heap (calibration note 1, the heap's fit and the hopper's outlet)
+        outlet = max(HOPPER_OUTLET * R * (n / ACROSS["repose"]["default"]), HOPPER_OUTLET_MIN * R)
         z0 = 3.0 * R  # outlet height at t = 0
         # the settled column is dropped into the hopper where the cone is wide enough for its corners
         z_block = max((D / math.sqrt(2.0) + 2.0 * R - outlet) * math.tan(HOPPER_WALL), 2.0 * R)
@@ -396,7 +400,7 @@ def build_overrides(case: str, p: dict, resolution: str, work_dir: str | Path | 
                 "tools": [{"name": "hopper", "mesh": mesh_file, "start": [0.0, 0.0, z0],
                            "velocity": [0.0, 0.0, HOPPER_LIFT_SPEED]}],
                 "sim.duration": 1.4 * heap_h / HOPPER_LIFT_SPEED + 2.0}
-        geo = dict(radius=R, column=D)
+        geo = dict(radius=R, column=D, outlet=outlet)
     elif case == "vertical_cut":
         H = p["height"]
         hc = culmann_height(p["preset"])
