@@ -240,6 +240,14 @@ from the version in the header. The knobs, in the order to tune them:
    seeds 0 and 3 lie under the band at a = 0.5 (0.430, 0.339). A slice twice as wide (16 diameters, the same seeds at
    8 across) spreads every packing further (means 0.588 and 1.364; five and six of six in the band), its front the
    farthest of more grains, and leaves the slope at 1.21: the slice stays as the gates were set.
+   **Nor does a lower rolling resistance, now that the heaps share one hopper** (2026-12-07, later; the hopper: "The
+   same hopper at every resolution", below; the cases' `rolling_resistance` parameter, one run each: seeds 0-5 for
+   the columns, 0-3 for the coarse heap). At 0.25 instead of the mapping's 0.3 for sand the coarse columns spread
+   further (a = 0.5: 0.528 / 0.713 / 0.428 / 0.659 / 0.630 / 0.726, five of six in the band; a = 1: a mean of 1.267;
+   a slope of 1.045), the default ones too (means 0.670 and 1.365, every packing in the band, a slope of 1.027), and
+   the default wall reads 1.021 x Rankine (1.063), but the heaps fall under their band: 30.2 deg at default (33.6
+   with 0.3) and 29.3 / 31.4 / 31.2 / 31.9 at coarse (33.3 / 32.6 / 32.2 / 31.9). The default heap needs the
+   mapping's 0.3, and a column 4 grains tall needs less to spread.
    **A random pour packs the deep beds denser** (2026-11-28, the passive wall at default, 10 grains across H, in a
    bed 20 grains deep, seeds 0 / 1 / 2): the lattice pour settles at a solid fraction of 0.480 and reads 1.024 /
    1.082 / 1.059 x Rankine (mean 1.055); a random sideways start of 1.5 sqrt(g d) settles at 0.503-0.505 and reads
