@@ -117,8 +117,10 @@ ACROSS = {
     "blade_cut_3d": dict(coarse=3, default=6, fine=10),     # the 3-D blade (plane_strain=0): w-scaling runs
     # the wall at 5 across read 0.92-1.38 x Rankine over seeds 0-5 (H 0.2 m); at 8, 0.93-1.11 over seeds 0-3
     "passive_wall": dict(coarse=8, default=10, fine=15),    # across the wall height
+    # the run-out at a = 0.5 read 0.34-0.64 over seeds 0-5 at 8 across (4 grains tall), 0.52-0.79 at 16
     "column_collapse": dict(coarse=8, default=16, fine=24),  # across L0
-    # the heap at 8 across read 27.2-31.4 deg over seeds 0-4 (its flank fits span a few grains); at 12, 30.7-32.0
+    # the heap at 12 across read 31.9-33.3 deg over seeds 0-3 through the default's hopper (its flank fits span a few
+    # grains), 33.6 at 16
     "repose": dict(coarse=12, default=16, fine=24),         # across the poured column
     "vertical_cut": dict(coarse=8, default=16, fine=24),    # across the Culmann height
     "critical_height": dict(coarse=8, default=16, fine=24),  # its vertical cuts'
