@@ -248,6 +248,10 @@ from the version in the header. The knobs, in the order to tune them:
    the default wall reads 1.021 x Rankine (1.063), but the heaps fall under their band: 30.2 deg at default (33.6
    with 0.3) and 29.3 / 31.4 / 31.2 / 31.9 at coarse (33.3 / 32.6 / 32.2 / 31.9). The default heap needs the
    mapping's 0.3, and a column 4 grains tall needs less to spread.
+   **Nor do smooth pit walls** (2026-12-07, later; a scratch copy whose pit side walls had no friction and no rolling
+   resistance, as a perspex box's would have little, the pit floor rough): the column settles against the pit before
+   its release, but the coarse columns spread less, not more (a = 0.5: 0.359 / 0.663 / 0.674 / 0.001 / 0.543 / 0.652,
+   one packing standing as poured; a = 1: a mean of 1.238; a slope of 1.36).
    **A random pour packs the deep beds denser** (2026-11-28, the passive wall at default, 10 grains across H, in a
    bed 20 grains deep, seeds 0 / 1 / 2): the lattice pour settles at a solid fraction of 0.480 and reads 1.024 /
    1.082 / 1.059 x Rankine (mean 1.055); a random sideways start of 1.5 sqrt(g d) settles at 0.503-0.505 and reads
