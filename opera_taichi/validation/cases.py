@@ -117,7 +117,8 @@ ACROSS = {
     "blade_cut_3d": dict(coarse=3, default=6, fine=10),     # the 3-D blade (plane_strain=0): w-scaling runs
     # the wall at 5 across read 0.92-1.38 x Rankine over seeds 0-5 (H 0.2 m); at 8, 0.93-1.11 over seeds 0-3
     "passive_wall": dict(coarse=8, default=10, fine=15),    # across the wall height
-    # the run-out at a = 0.5 read 0.34-0.64 over seeds 0-5 at 8 across (4 grains tall), 0.52-0.79 at 16
+    # the run-out at a = 0.5 read 0.00-0.83 over seeds 0-23 at 8 across (4 grains tall; mean 0.558), 0.50-0.79 at 16
+    # (mean 0.619): the gates take the mean of the packings (report.COLUMN_SEEDS)
     "column_collapse": dict(coarse=8, default=16, fine=24),  # across L0
     # the heap at 12 across read 31.9-33.3 deg over seeds 0-3 through the default's hopper (its flank fits span a few
     # grains), 33.6 at 16

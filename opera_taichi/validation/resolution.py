@@ -12,7 +12,8 @@ issue "accurate at the speed people use it" asks for:
   packings: one packing's peak spreads by +-20% at 4 across);
 - the critical height of a vertical cut, bisected, within 25% of Culmann's for dirt and kanto_loam at the coarse
   and default resolutions;
-- the column run-outs and both heaps at their coarse resolutions, in the default gate set's bands;
+- the column run-outs (at a <= 1 the mean of the gate set's packings) and both heaps at their coarse
+  resolutions, in the default gate set's bands, and the run-out's slope;
 - the blade and wall runs with the soil wedge at the tool's cutting edge (`--param wedge=1`, tools.cutting_edge: the
   earthmoving equation's wedge, AGX Terrain's aggregate), the model that takes the resolution out of the forces and
   the one these gates hold to; the grains alone (the bulk-to-micro mapping by itself) run beside it, shown and not
@@ -31,7 +32,7 @@ from pathlib import Path
 
 from ..errors import DivergenceError, UserError
 from .cases import check_case_folder, finished_metrics, run_case
-from .report import SAND, solver_label, warned_runs
+from .report import PACKINGS, SAND, packing_lines, solver_label, warned_runs
 
 CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
 GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gate run: 20 across
@@ -162,8 +163,8 @@ def study_gates(results: dict[str, dict]) -> list[dict]:
 
 
 def coarse_gates(results: dict[str, dict]) -> list[dict]:
-    """Each coarse heap and column in its own band (the run's gate, as in the default gate set) and the run-out's
-    log-log slope on the coarse columns."""
+    """Each coarse heap and column in its own band (the run's gate, as in the default gate set; a column at a <= 1 on
+    the mean of its packings) and the run-out's log-log slope on the coarse columns."""
     from .cases import ACROSS
     from .report import derived_gates
 
@@ -171,19 +172,26 @@ def coarse_gates(results: dict[str, dict]) -> list[dict]:
     for label, case, _, _ in coarse_set():
         m = results.get(label)
         name = f"{label.removesuffix('_coarse')}, coarse ({ACROSS[case]['coarse']} grains across)"
+        packing = label.removesuffix("_coarse") in PACKINGS
         if m is None or "diverged" in m:
-            gates.append(dict(label=name, measured=None, reference=None, passed=None if m is None else False,
-                              gate="its case's band", gated=True, diverged=m is not None))
             diverged = diverged or (m is not None and case == "column_collapse")
+            if not packing:  # a packing that is missing or diverged shows in its mean's gate
+                gates.append(dict(label=name, measured=None, reference=None, passed=None if m is None else False,
+                                  gate="its case's band", gated=True, diverged=m is not None))
             continue
-        gates.append(dict(label=f"{name}: {m['metric']}", measured=m["measured"], reference=m["reference"],
-                          relative_error=m["relative_error"], passed=bool(m["passed"]), gate=m["gate"], gated=True))
         if case == "column_collapse":
             columns.append({**m, "label": label.removesuffix("_coarse")})
-    slope = next(row for row in derived_gates(columns) if row["label"].startswith("run-out"))
-    if diverged:
-        slope.update(measured=None, passed=False, diverged=True)
-    return gates + [{**slope, "label": slope["label"] + ", coarse", "gated": True}]
+        if not packing:
+            gates.append(dict(label=f"{name}: {m['metric']}", measured=m["measured"], reference=m["reference"],
+                              relative_error=m["relative_error"], passed=bool(m["passed"]), gate=m["gate"],
+                              gated=True))
+    for row in derived_gates(columns):
+        if row["label"].startswith(("column run-out", "run-out")):
+            if diverged:
+                row.update(measured=None, passed=False, diverged=True)
+            gates.append({**row, "label": row["label"] + f", coarse ({ACROSS['column_collapse']['coarse']} grains "
+                                                           "across)", "gated": True})
+    return gates
 
 
 def write_study(results: dict[str, dict], gates: list[dict], report_path: Path, command: str) -> Path:
@@ -272,6 +280,8 @@ def study_section(results: dict[str, dict], gates: list[dict], plot_dir: Path, l
             lo, hi = m["bracket_m"]
             lines.append(f"| {m['parameters']['preset']} | {m['resolution']} | {m['n_across']} | {m['measured']:.3f} | "
                          f"{lo:.3f}-{hi:.3f} | {m['reference']:.3f} | {_ratio(m):.3f} |")
+    lines += packing_lines([{**m, "label": k.removesuffix("_coarse")} for k, m in results.items()
+                            if "diverged" not in m and k.removesuffix("_coarse") in PACKINGS])
     lines += warned_runs(list(results.items()))
     plot = _plot(conv, conv_wedge, plot_dir)
     if plot is not None:
