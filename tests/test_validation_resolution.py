@@ -170,6 +170,8 @@ def test_all_closes_its_report_with_the_study_and_fails_on_its_gated_rows(tmp_pa
     assert "## At operating resolution" in text and "### Gates at operating resolution" in text
     assert "| 20 | 1,000 | 2769 | 1.000 | 10 |" in text   # the gate set's 20-across blade closes the grains' column
     assert (tmp_path / "v" / "blade_convergence.png").read_bytes()[:4] == b"\x89PNG"
+    assert (tmp_path / "v" / "runout_coarse.png").read_bytes()[:4] == b"\x89PNG"  # the coarse columns' packings
+    assert "![run-out vs aspect ratio, coarse](v/runout_coarse.png)" in text
     # at another resolution the study does not run
     ran.clear()
     report.run_all("coarse", tmp_path / "coarse", tmp_path / "c.md")

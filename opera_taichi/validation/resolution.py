@@ -32,7 +32,7 @@ from pathlib import Path
 
 from ..errors import DivergenceError, UserError
 from .cases import check_case_folder, finished_metrics, run_case
-from .report import PACKINGS, SAND, packing_lines, solver_label, warned_runs
+from .report import PACKINGS, SAND, packing_lines, runout_plot, solver_label, warned_runs
 
 CONVERGENCE_ACROSS = (3, 4, 6, 8, 12)
 GATE_RUN_20 = Path("runs/validation-default/blade_a90_d0.3")   # the default gate run: 20 across
@@ -286,6 +286,15 @@ def study_section(results: dict[str, dict], gates: list[dict], plot_dir: Path, l
     plot = _plot(conv, conv_wedge, plot_dir)
     if plot is not None:
         lines += ["", f"![draft over FEE against grains across the cut]({plot_dir.name}/{plot.name})"]
+    columns = [{**m, "label": k.removesuffix("_coarse")} for k, m in results.items()
+               if k.startswith("column_") and k.endswith("_coarse") and "diverged" not in m]
+    if columns:
+        from .cases import ACROSS
+
+        across = ACROSS["column_collapse"]["coarse"]
+        plot = runout_plot(columns, plot_dir / "runout_coarse.png",
+                           f"Column collapse, coarse ({across} grains across L0)")
+        lines += ["", f"![run-out vs aspect ratio, coarse]({plot_dir.name}/{plot.name})"]
     return lines
 
 
